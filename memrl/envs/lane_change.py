@@ -1,0 +1,296 @@
+"""The lane-change task of the paper as a highway-env environment (``memrl/LaneChange-v0``).
+
+Coordinates follow highway-env: x along the road [m], y across it [m], lane i centred at
+y = i * lane_width (lane 0 leftmost in the pictures), heading 0 along +x.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from highway_env import utils
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.envs.common.action import ActionType
+from highway_env.envs.common.observation import ObservationType
+from highway_env.road.lane import LineType, StraightLane
+from highway_env.road.road import Road, RoadNetwork
+
+from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
+from memrl.envs.controllers import CarController, make_controller
+from memrl.envs.render import BEVRenderer, View
+from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
+
+REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
+
+
+class CurvatureSpeedAction(ActionType):
+    """The 9 discrete speed x curvature changes of the paper."""
+
+    def space(self) -> spaces.Discrete:
+        return spaces.Discrete(N_ACTIONS)
+
+    @property
+    def vehicle_class(self) -> type:
+        return CurvatureVehicle
+
+    def act(self, action: Any) -> None:
+        self.controlled_vehicle.apply_action(int(action))
+
+    def get_available_actions(self) -> list[int]:
+        return list(range(N_ACTIONS))
+
+
+class BEVObservation(ObservationType):
+    """RGB bird's-eye-view crop centred on the observer car, channel-first uint8 ``[3, H, W]``."""
+
+    def __init__(self, env: LaneChangeEnv) -> None:
+        super().__init__(env)
+        self.env: LaneChangeEnv = env
+
+    def space(self) -> spaces.Box:
+        bev = self.env.cfg.bev
+        return spaces.Box(0, 255, (3, bev.height, bev.width), dtype=np.uint8)
+
+    def observe(self) -> np.ndarray:
+        car = self.observer_vehicle
+        return self.env.observe_from(car, car.target_lane)
+
+
+class LaneChangeEnv(AbstractEnv):
+    """Change to the target lane among other cars without hitting them or the road edges.
+
+    Reward per step: the sum of the named components of :meth:`_rewards` (each 0 or 1) weighted
+    by ``config['reward'][name]`` (Table II). Terminated on collision; truncated after
+    ``duration`` steps. ``info`` holds the components (``rewards``), ``collided``,
+    ``on_target_lane`` and ``reached_target`` (all four corners of the agent inside the
+    target lane at some step of the episode so far).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
+        self.cfg: LaneChangeConfig = validate_env_config({**env_config_dict(), **(config or {})})
+        self.target_lane = 0
+        self.reached_target = False
+        self.others: list[CurvatureVehicle] = []
+        self.controllers: list[CarController] = []
+        self._bev: BEVRenderer | None = None
+        self._scene: BEVRenderer | None = None
+        super().__init__(config, render_mode)
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update(env_config_dict())
+        return config
+
+    def configure(self, config: dict) -> None:
+        if config:
+            utils.update_config(self.config, dict(config))
+        self.cfg = validate_env_config(self.config)
+        self.config["offscreen_rendering"] = True
+        self._bev = self._scene = None
+
+    def define_spaces(self) -> None:
+        """Our own action and observation types (highway-env's factories only know theirs)."""
+        self.observation_type = BEVObservation(self)
+        self.action_type = CurvatureSpeedAction(self)
+        self.observation_space = self.observation_type.space()
+        self.action_space = self.action_type.space()
+
+    # ----------------------------------------------------------------------------- scene
+    def _reset(self) -> None:
+        cfg, rng = self.cfg, self.np_random
+        self.config["simulation_frequency"] = self.config["policy_frequency"] = 1.0 / cfg.dt
+        self._make_road()
+        n = cfg.lanes_count
+        self.target_lane = int(rng.integers(n)) if cfg.target_lane == "random" else cfg.target_lane
+        others = [lane for lane in range(n) if lane != self.target_lane]
+        start_on_target = cfg.initial_lane == "random" and rng.random() < 0.5
+        lane = self.target_lane if start_on_target else int(rng.choice(others))
+        speed = float(rng.uniform(*cfg.initial_speed))
+        agent = self._car(np.array([500.0, lane * cfg.lane_width]), speed, "agent")
+        agent.target_lane = self.target_lane
+        self.vehicle = agent
+        self.road.vehicles.append(agent)
+        self.others = self._spawn_others(agent)
+        self.road.vehicles.extend(self.others)
+        self.controllers = [make_controller(cfg.opponent)]
+        for car in self.others:
+            car.controller = self.controllers[0]
+        for controller in self.controllers:
+            controller.reset(self, self._cars_of(controller))
+        self.reached_target = self._inside_target_lane()
+
+    def _make_road(self) -> None:
+        cfg = self.cfg
+        net = RoadNetwork()
+        for i in range(cfg.lanes_count):
+            lines = (
+                LineType.CONTINUOUS_LINE if i == 0 else LineType.STRIPED,
+                LineType.CONTINUOUS_LINE if i == cfg.lanes_count - 1 else LineType.NONE,
+            )
+            y = i * cfg.lane_width
+            net.add_lane("0", "1", StraightLane([0.0, y], [cfg.road_length, y],
+                                                width=cfg.lane_width, line_types=lines))
+        self.road = Road(network=net, np_random=self.np_random, record_history=False)
+
+    def _car(self, position: np.ndarray, speed: float, kind: str) -> CurvatureVehicle:
+        cfg = self.cfg
+        return CurvatureVehicle(
+            self.road, position, 0.0, speed,
+            length=cfg.vehicle_length, width=cfg.vehicle_width, kind=kind,
+            limits={"speed_step": cfg.speed_step, "curvature_step": cfg.curvature_step,
+                    "speed_limits": cfg.speed_limits, "curvature_limit": cfg.curvature_limit},
+        )
+
+    def _spawn_others(self, agent: CurvatureVehicle) -> list[CurvatureVehicle]:
+        """Constant-heading cars in all lanes, ahead and behind, with no initial overlap.
+
+        Within a lane, speeds are sorted so that no car is faster than the one ahead of it:
+        straight constant-speed cars then never run into each other.
+        """
+        cfg, rng = self.cfg, self.np_random
+        count = cfg.vehicles_count
+        if isinstance(count, list | tuple):
+            count = int(rng.integers(count[0], count[1] + 1))
+        placed: list[tuple[int, float]] = []
+        agent_lane, x0 = agent.lane_index[2], float(agent.position[0])
+        min_gap = cfg.vehicle_length + cfg.spawn_gap
+        for _ in range(count):
+            for _ in range(cfg.spawn_attempts):
+                lane = int(rng.integers(cfg.lanes_count))
+                x = float(rng.uniform(x0 - cfg.spawn_behind, x0 + cfg.spawn_ahead))
+                clear = all(abs(x - px) >= min_gap for pl, px in placed if pl == lane)
+                if lane == agent_lane:
+                    clear = clear and abs(x - x0) >= cfg.vehicle_length + 2 * cfg.spawn_gap
+                if clear:
+                    placed.append((lane, x))
+                    break
+        speeds = rng.uniform(*cfg.other_speed, size=len(placed))
+        cars = []
+        for lane in range(cfg.lanes_count):
+            xs = sorted(x for pl, x in placed if pl == lane)
+            lane_speeds = sorted(speeds[len(cars): len(cars) + len(xs)])
+            for x, v in zip(xs, lane_speeds, strict=True):
+                cars.append(self._car(np.array([x, lane * cfg.lane_width]), float(v), "constant"))
+        return cars
+
+    def _cars_of(self, controller: CarController) -> list[CurvatureVehicle]:
+        return [car for car in self.others if car.controller is controller]
+
+    # ------------------------------------------------------------------------------ step
+    def _simulate(self, action: Any = None) -> None:
+        """One action step: every car takes its action, then all move by ``dt``."""
+        if action is not None:
+            self.action_type.act(action)
+        for controller in self.controllers:
+            cars = self._cars_of(controller)
+            if cars:
+                for car, a in zip(cars, controller.act(self, cars), strict=True):
+                    car.apply_action(int(a))
+        self.road.step(self.cfg.dt)
+        self.steps += 1
+        if self._hits_wall(self.vehicle):
+            self.vehicle.crashed = True
+        if self._inside_target_lane():
+            self.reached_target = True
+
+    def _lateral_extent(self, car: CurvatureVehicle) -> tuple[float, float]:
+        corners_y = car.polygon()[:4, 1]
+        return float(corners_y.min()), float(corners_y.max())
+
+    def _hits_wall(self, car: CurvatureVehicle) -> bool:
+        # Hand-written: highway-env has no wall object for a road edge; any corner beyond it hits.
+        lo, hi = self._lateral_extent(car)
+        w = self.cfg.lane_width
+        return lo < -0.5 * w or hi > (self.cfg.lanes_count - 0.5) * w
+
+    def _inside_target_lane(self) -> bool:
+        lo, hi = self._lateral_extent(self.vehicle)
+        y = self.target_lane * self.cfg.lane_width
+        return y - 0.5 * self.cfg.lane_width <= lo and hi <= y + 0.5 * self.cfg.lane_width
+
+    def current_lane(self, car: CurvatureVehicle | None = None) -> int:
+        """Lane holding the car's centre (clipped to the road)."""
+        return int((car or self.vehicle).lane_index[2])
+
+    def _rewards(self, action: Any = None) -> dict[str, float]:
+        cfg, car = self.cfg, self.vehicle
+        lane = self.current_lane()
+        offset = car.position[1] - lane * cfg.lane_width
+        on_target = lane == self.target_lane
+        return {
+            "collision": float(car.crashed),
+            "lane_centre": float(abs(offset) <= cfg.lane_centre_tolerance),
+            "stopped": float(car.speed <= cfg.stopped_speed),
+            "target_lane": float(on_target),
+            "non_target_lane": float(not on_target),
+        }
+
+    def _reward(self, action: Any = None) -> float:
+        weights = self.cfg.reward
+        return float(sum(getattr(weights, k) * v for k, v in self._rewards(action).items()))
+
+    def _is_terminated(self) -> bool:
+        return bool(self.vehicle.crashed)
+
+    def _is_truncated(self) -> bool:
+        return self.steps >= self.cfg.duration
+
+    def _info(self, obs: Any, action: Any = None) -> dict:
+        car = self.vehicle
+        return {
+            "speed": float(car.speed),
+            "curvature": float(car.curvature),
+            "lane": self.current_lane(),
+            "target_lane": self.target_lane,
+            "rewards": self._rewards(action),
+            # numpy scalars: TorchRL's info reader needs a dtype on every value
+            "collided": np.bool_(car.crashed),
+            "on_target_lane": np.bool_(self.current_lane() == self.target_lane),
+            "reached_target": np.bool_(self.reached_target),
+        }
+
+    # ------------------------------------------------------------------------- rendering
+    @property
+    def bev(self) -> BEVRenderer:
+        """The observation renderer (the same for the agent and any other car)."""
+        if self._bev is None:
+            b = self.cfg.bev
+            self._bev = BEVRenderer(
+                View(b.width, b.height, b.lateral_scale, b.longitudinal_scale),
+                self.cfg.lanes_count, self.cfg.lane_width,
+                show_target_lane=b.show_target_lane, dash_length=b.dash_length,
+            )
+        return self._bev
+
+    def observe_from(self, car: CurvatureVehicle, target_lane: int | None) -> np.ndarray:
+        """The ``[3, H, W]`` uint8 view centred on ``car`` with ``target_lane`` highlighted.
+
+        The car itself is drawn in the agent's shade (see :meth:`BEVRenderer.render`), so a
+        car driven by a copy of the agent sees the scene as the agent does.
+        """
+        img = self.bev.render(car.position, self.road.vehicles, target_lane, ego=car)
+        return np.ascontiguousarray(img.transpose(2, 0, 1))
+
+    def render(self) -> np.ndarray | None:
+        """Full-scene RGB picture ``(H, W, 3)`` centred on the agent (``render_mode='rgb_array'``)."""
+        if self.render_mode != "rgb_array":
+            return None
+        if self._scene is None:
+            s = self.cfg.scene
+            self._scene = BEVRenderer(
+                View(s.width, s.height, s.lateral_scale, s.longitudinal_scale),
+                self.cfg.lanes_count, self.cfg.lane_width,
+                show_target_lane=True, dash_length=self.cfg.bev.dash_length,
+            )
+        return self._scene.render(
+            self.vehicle.position, self.road.vehicles, self.target_lane, ego=self.vehicle
+        )
+
+    def close(self) -> None:
+        self._bev = self._scene = None
+        super().close()

@@ -1,0 +1,73 @@
+"""The TorchRL pipeline: ``TransformedEnv`` over ``GymEnv`` giving stacked grayscale BEV pixels."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.data import Composite, Unbounded
+from torchrl.envs import (
+    CatFrames,
+    Compose,
+    GrayScale,
+    RenameTransform,
+    RewardSum,
+    StepCounter,
+    TransformedEnv,
+)
+from torchrl.envs.libs.gym import GymEnv, default_info_dict_reader
+
+from memrl.envs import ENV_ID, register_envs
+from memrl.envs.config import validate_env_config
+
+INFO_KEYS = ("collided", "on_target_lane", "reached_target")
+"""Per-step flags copied from the gym ``info`` dict into the tensordict."""
+
+
+def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]:
+    """Plain, checked env config dict from a Hydra node or mapping (None: defaults)."""
+    if env_cfg is None:
+        return {}
+    values = OmegaConf.to_container(env_cfg, resolve=True) if isinstance(env_cfg, DictConfig) else dict(env_cfg)
+    validate_env_config(values)  # fail early, naming the key
+    return values
+
+
+def make_env(
+    env_cfg: Mapping[str, Any] | DictConfig | None = None,
+    *,
+    frame_stack: int = 4,
+    seed: int | None = None,
+    render_mode: str | None = None,
+) -> TransformedEnv:
+    """Build the lane-change env for TorchRL.
+
+    Keys of the result: ``pixels`` uint8 ``[frame_stack, H, W]`` (grayscale frames, oldest
+    first), ``action`` (one-hot over 9), ``reward``, ``done``/``terminated``/``truncated``,
+    ``step_count``, ``episode_reward`` and the flags of :data:`INFO_KEYS`.
+
+    Args:
+        env_cfg: lane-change config values (see :class:`memrl.envs.config.LaneChangeConfig`).
+        frame_stack: number of frames concatenated along the channel dimension.
+        seed: seed of the first reset (None: unseeded).
+        render_mode: ``'rgb_array'`` to allow full-scene pictures via ``env.render()``.
+    """
+    register_envs()
+    base = GymEnv(ENV_ID, config=env_kwargs(env_cfg), render_mode=render_mode, device="cpu")
+    spec = Composite({k: Unbounded(shape=(), dtype=torch.bool) for k in INFO_KEYS})
+    base.set_info_dict_reader(default_info_dict_reader(list(INFO_KEYS), spec=spec))
+    env = TransformedEnv(
+        base,
+        Compose(
+            RenameTransform(in_keys=["observation"], out_keys=["pixels"]),
+            GrayScale(in_keys=["pixels"]),
+            CatFrames(N=frame_stack, dim=-3, in_keys=["pixels"]),
+            StepCounter(),
+            RewardSum(),
+        ),
+    )
+    if seed is not None:
+        env.set_seed(seed)
+    return env
