@@ -43,7 +43,10 @@ class CurvatureSpeedAction(ActionType):
 
 
 class BEVObservation(ObservationType):
-    """RGB bird's-eye-view crop centred on the observer car, channel-first uint8 ``[3, H, W]``."""
+    """Bird's-eye-view crop centred on the observer car, channel-first uint8 ``[C, H, W]``.
+
+    C is 1 (grayscale levels drawn directly, the default) or 3 (RGB), see ``bev.grayscale``.
+    """
 
     def __init__(self, env: LaneChangeEnv) -> None:
         super().__init__(env)
@@ -51,7 +54,7 @@ class BEVObservation(ObservationType):
 
     def space(self) -> spaces.Box:
         bev = self.env.cfg.bev
-        return spaces.Box(0, 255, (3, bev.height, bev.width), dtype=np.uint8)
+        return spaces.Box(0, 255, (1 if bev.grayscale else 3, bev.height, bev.width), np.uint8)
 
     def observe(self) -> np.ndarray:
         car = self.observer_vehicle
@@ -122,7 +125,7 @@ class LaneChangeEnv(AbstractEnv):
             car.controller = self.controllers[0]
         for controller in self.controllers:
             controller.reset(self, self._cars_of(controller))
-        self.reached_target = self._inside_target_lane()
+        self.reached_target = self._inside_target_lane(*self._lateral_extent(agent))
 
     def _make_road(self) -> None:
         cfg = self.cfg
@@ -191,25 +194,38 @@ class LaneChangeEnv(AbstractEnv):
             if cars:
                 for car, a in zip(cars, controller.act(self, cars), strict=True):
                     car.apply_action(int(a))
-        self.road.step(self.cfg.dt)
+        self._move_and_collide(self.cfg.dt)
         self.steps += 1
-        if self._hits_wall(self.vehicle):
+        lo, hi = self._lateral_extent(self.vehicle)
+        if self._hits_wall(lo, hi):
             self.vehicle.crashed = True
-        if self._inside_target_lane():
+        if self._inside_target_lane(lo, hi):
             self.reached_target = True
 
+    def _move_and_collide(self, dt: float) -> None:
+        """``Road.step`` with a vectorised distance pre-check before highway-env's polygon test."""
+        cars = self.road.vehicles
+        for car in cars:
+            car.step(dt)
+        pos = np.array([c.position for c in cars])
+        reach = np.array([c.diagonal for c in cars])
+        dist = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=-1)
+        close = np.triu(dist <= 0.5 * (reach[:, None] + reach[None, :]), k=1)
+        for i, j in zip(*np.nonzero(close), strict=True):
+            cars[i].handle_collisions(cars[j], 0.0)
+
     def _lateral_extent(self, car: CurvatureVehicle) -> tuple[float, float]:
-        corners_y = car.polygon()[:4, 1]
+        corners_y = BEVRenderer.car_corners([car])[0, :, 1]
         return float(corners_y.min()), float(corners_y.max())
 
-    def _hits_wall(self, car: CurvatureVehicle) -> bool:
+    def _hits_wall(self, lo: float, hi: float) -> bool:
+        """Whether a car spanning [lo, hi] across the road [m] touches a road edge."""
         # Hand-written: highway-env has no wall object for a road edge; any corner beyond it hits.
-        lo, hi = self._lateral_extent(car)
         w = self.cfg.lane_width
         return lo < -0.5 * w or hi > (self.cfg.lanes_count - 0.5) * w
 
-    def _inside_target_lane(self) -> bool:
-        lo, hi = self._lateral_extent(self.vehicle)
+    def _inside_target_lane(self, lo: float, hi: float) -> bool:
+        """Whether a car spanning [lo, hi] across the road [m] lies wholly in the target lane."""
         y = self.target_lane * self.cfg.lane_width
         return y - 0.5 * self.cfg.lane_width <= lo and hi <= y + 0.5 * self.cfg.lane_width
 
@@ -264,17 +280,18 @@ class LaneChangeEnv(AbstractEnv):
                 View(b.width, b.height, b.lateral_scale, b.longitudinal_scale),
                 self.cfg.lanes_count, self.cfg.lane_width,
                 show_target_lane=b.show_target_lane, dash_length=b.dash_length,
+                channels=1 if b.grayscale else 3,
             )
         return self._bev
 
     def observe_from(self, car: CurvatureVehicle, target_lane: int | None) -> np.ndarray:
-        """The ``[3, H, W]`` uint8 view centred on ``car`` with ``target_lane`` highlighted.
+        """The ``[C, H, W]`` uint8 view centred on ``car`` with ``target_lane`` highlighted.
 
         The car itself is drawn in the agent's shade (see :meth:`BEVRenderer.render`), so a
         car driven by a copy of the agent sees the scene as the agent does.
         """
         img = self.bev.render(car.position, self.road.vehicles, target_lane, ego=car)
-        return np.ascontiguousarray(img.transpose(2, 0, 1))
+        return img[None] if img.ndim == 2 else np.ascontiguousarray(img.transpose(2, 0, 1))
 
     def render(self) -> np.ndarray | None:
         """Full-scene RGB picture ``(H, W, 3)`` centred on the agent (``render_mode='rgb_array'``)."""

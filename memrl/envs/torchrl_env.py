@@ -45,7 +45,7 @@ def make_env(
     """Build the lane-change env for TorchRL.
 
     Keys of the result: ``pixels`` uint8 ``[frame_stack, H, W]`` (grayscale frames, oldest
-    first), ``action`` (one-hot over 9), ``reward``, ``done``/``terminated``/``truncated``,
+    first), ``action`` (int64 index in [0, 9)), ``reward``, ``done``/``terminated``/``truncated``,
     ``step_count``, ``episode_reward`` and the flags of :data:`INFO_KEYS`.
 
     Args:
@@ -55,19 +55,20 @@ def make_env(
         render_mode: ``'rgb_array'`` to allow full-scene pictures via ``env.render()``.
     """
     register_envs()
-    base = GymEnv(ENV_ID, config=env_kwargs(env_cfg), render_mode=render_mode, device="cpu")
+    values = env_kwargs(env_cfg)
+    base = GymEnv(ENV_ID, config=values, render_mode=render_mode, device="cpu",
+                  categorical_action_encoding=True)
     spec = Composite({k: Unbounded(shape=(), dtype=torch.bool) for k in INFO_KEYS})
     base.set_info_dict_reader(default_info_dict_reader(list(INFO_KEYS), spec=spec))
-    env = TransformedEnv(
-        base,
-        Compose(
-            RenameTransform(in_keys=["observation"], out_keys=["pixels"]),
-            GrayScale(in_keys=["pixels"]),
-            CatFrames(N=frame_stack, dim=-3, in_keys=["pixels"]),
-            StepCounter(),
-            RewardSum(),
-        ),
-    )
+    transforms = [RenameTransform(in_keys=["observation"], out_keys=["pixels"])]
+    if base.observation_spec["observation"].shape[-3] == 3:  # env drew RGB (bev.grayscale=false)
+        transforms.append(GrayScale(in_keys=["pixels"]))
+    transforms += [
+        CatFrames(N=frame_stack, dim=-3, in_keys=["pixels"]),
+        StepCounter(),
+        RewardSum(),
+    ]
+    env = TransformedEnv(base, Compose(*transforms))
     if seed is not None:
         env.set_seed(seed)
     return env

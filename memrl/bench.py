@@ -1,0 +1,65 @@
+"""``python -m memrl.bench [env ...]``: side-by-side benchmarks, printed and saved as JSON."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from memrl.cli import run_hydra
+
+log = logging.getLogger(__name__)
+
+
+def _env(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import env_speed
+
+    return env_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
+BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env}
+
+
+def machine() -> dict[str, Any]:
+    """What the figures were measured on."""
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+    }
+
+
+def bench(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
+    """Run the selected benchmarks; write ``bench.json`` to ``out_dir`` and return the figures."""
+    unknown = [name for name in cfg.benchmarks if name not in BENCHMARKS]
+    if unknown:
+        raise ValueError(f"unknown benchmark(s) {unknown}; known: {sorted(BENCHMARKS)}")
+    result: dict[str, Any] = {"machine": machine()}
+    for name in cfg.benchmarks:
+        log.info("running benchmark %s", name)
+        result[name] = BENCHMARKS[name](cfg[name])
+        print(json.dumps({name: result[name]}, indent=2))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "bench.json").write_text(json.dumps(result, indent=2))
+    log.info("wrote %s", out_dir / "bench.json")
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="bench")
+def main(cfg: DictConfig) -> None:
+    bench(cfg, Path(cfg.paths.output_dir))
+
+
+if __name__ == "__main__":
+    run_hydra(main, positional_key="benchmarks")

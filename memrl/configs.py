@@ -1,0 +1,13 @@
+"""Structured-config schemas registered with Hydra's ConfigStore."""
+
+from __future__ import annotations
+
+from hydra.core.config_store import ConfigStore
+
+from memrl.envs.config import LaneChangeConfig
+
+
+def register_configs() -> None:
+    """Register the typed schemas that the YAML groups extend (idempotent)."""
+    cs = ConfigStore.instance()
+    cs.store(group="env", name="lane_change_schema", node=LaneChangeConfig)
