@@ -8,6 +8,7 @@ at start), and :func:`validate_env_config` checks values and names the bad key.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,8 +39,8 @@ class BEVConfig:
 class SceneRenderConfig:
     """Full-scene picture returned by ``render()`` (``render_mode='rgb_array'``), for people."""
 
-    width: int = 200
-    """Picture width [px] (across the road)."""
+    width: int = 120
+    """Picture width [px] (across the road): 24 m at 0.2 m/px."""
     height: int = 500
     """Picture height [px] (along the road, driving direction up): 100 m at 0.2 m/px."""
     lateral_scale: float = 0.2
@@ -155,11 +156,12 @@ def _check_range(cfg: LaneChangeConfig, key: str, low_min: float = 0.0) -> None:
     )
 
 
-def validate_env_config(values: dict[str, Any]) -> LaneChangeConfig:
+def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> LaneChangeConfig:
     """Build a :class:`LaneChangeConfig` from a (possibly partial) dict and check every value.
 
     Args:
-        values: keys of :class:`LaneChangeConfig`; highway-env's own keys are ignored.
+        values: keys of :class:`LaneChangeConfig`.
+        allow: other keys to accept and ignore (highway-env's own config keys).
 
     Returns:
         The typed, checked config.
@@ -167,8 +169,9 @@ def validate_env_config(values: dict[str, Any]) -> LaneChangeConfig:
     Raises:
         EnvConfigError: naming the first bad key and why.
     """
-    own = {f.name for f in dataclasses.fields(LaneChangeConfig)}
-    cfg: LaneChangeConfig = _build(LaneChangeConfig, {k: v for k, v in values.items() if k in own}, "")
+    allowed = set(allow)
+    cfg: LaneChangeConfig = _build(
+        LaneChangeConfig, {k: v for k, v in values.items() if k not in allowed}, "")
     _check(isinstance(cfg.lanes_count, int) and cfg.lanes_count >= 2, "lanes_count", "need >= 2")
     for key in ("lane_width", "vehicle_length", "vehicle_width", "dt", "road_length"):
         _check(getattr(cfg, key) > 0, key, f"must be > 0, got {getattr(cfg, key)!r}")

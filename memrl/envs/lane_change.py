@@ -10,7 +10,6 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.envs.common.action import ActionType
 from highway_env.envs.common.observation import ObservationType
@@ -23,6 +22,16 @@ from memrl.envs.render import BEVRenderer, View
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
 
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
+
+
+def _merge(base: dict, delta: dict) -> None:
+    """Recursive in-place update that accepts partial nested dicts."""
+    # Hand-written: highway-env's utils.update_config requires nested dicts to repeat every key.
+    for key, value in delta.items():
+        if isinstance(value, dict) and isinstance(base.get(key), dict):
+            _merge(base[key], value)
+        else:
+            base[key] = value
 
 
 class CurvatureSpeedAction(ActionType):
@@ -74,7 +83,8 @@ class LaneChangeEnv(AbstractEnv):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
-        self.cfg: LaneChangeConfig = validate_env_config({**env_config_dict(), **(config or {})})
+        self.cfg: LaneChangeConfig = validate_env_config(
+            {**env_config_dict(), **(config or {})}, allow=AbstractEnv.default_config())
         self.target_lane = 0
         self.reached_target = False
         self.others: list[CurvatureVehicle] = []
@@ -91,8 +101,8 @@ class LaneChangeEnv(AbstractEnv):
 
     def configure(self, config: dict) -> None:
         if config:
-            utils.update_config(self.config, dict(config))
-        self.cfg = validate_env_config(self.config)
+            _merge(self.config, dict(config))
+        self.cfg = validate_env_config(self.config, allow=AbstractEnv.default_config())
         self.config["offscreen_rendering"] = True
         self._bev = self._scene = None
 
@@ -180,6 +190,34 @@ class LaneChangeEnv(AbstractEnv):
             for x, v in zip(xs, lane_speeds, strict=True):
                 cars.append(self._car(np.array([x, lane * cfg.lane_width]), float(v), "constant"))
         return cars
+
+    # --------------------------------------------------------------- hand-made situations
+    def add_car(self, x: float, y: float, speed: float, heading: float = 0.0,
+                controller: CarController | None = None) -> CurvatureVehicle:
+        """Put another car at (x, y) [m] with ``speed`` [m/s], driven by ``controller``
+        (default: this episode's first controller). For hand-made scenes and tests."""
+        controller = controller or self.controllers[0]
+        car = self._car(np.array([x, y], dtype=np.float64), speed, controller.kind)
+        car.heading = heading
+        car.controller = controller
+        self.others.append(car)
+        self.road.vehicles.append(car)
+        return car
+
+    def remove_others(self) -> None:
+        """Remove every other car from the road."""
+        self.road.vehicles = [self.vehicle]
+        self.others = []
+
+    def place_agent(self, x: float, y: float, speed: float, heading: float = 0.0,
+                    curvature: float = 0.0) -> None:
+        """Move the agent to (x, y) [m] with the given state; recomputes ``reached_target``."""
+        car = self.vehicle
+        car.position = np.array([x, y], dtype=np.float64)
+        car.heading, car.speed, car.curvature = heading, speed, curvature
+        car.crashed = False
+        car.on_state_update()
+        self.reached_target = self._inside_target_lane(*self._lateral_extent(car))
 
     def _cars_of(self, controller: CarController) -> list[CurvatureVehicle]:
         return [car for car in self.others if car.controller is controller]

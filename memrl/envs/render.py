@@ -101,8 +101,11 @@ class BEVRenderer:
 
     def _fill_poly(self, img: np.ndarray, poly: np.ndarray, color: Color) -> None:
         """Fill a convex polygon ``[4, (col, row)]`` given in continuous pixel coordinates."""
-        # Continuous coords -> OpenCV's pixel-centre coords, fixed point for sub-pixel corners.
-        pts = np.round((poly - 0.5) * _ONE).astype(np.int32)
+        # Continuous coords -> OpenCV's pixel-centre coords (-0.5). OpenCV fills every pixel
+        # whose centre is on or inside the outline, so pull each corner in by half a pixel per
+        # axis: a box spanning [a, b) then covers exactly the pixels with centres in it.
+        inward = 0.5 * np.sign(poly - poly.mean(axis=0))
+        pts = np.round((poly - 0.5 - inward) * _ONE).astype(np.int32)
         cv2.fillConvexPoly(img, pts, color, lineType=cv2.LINE_8, shift=_SHIFT)
 
     def _cols(self, center: np.ndarray, y0: float, y1: float) -> slice:

@@ -30,7 +30,10 @@ def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]
     """Plain, checked env config dict from a Hydra node or mapping (None: defaults)."""
     if env_cfg is None:
         return {}
-    values = OmegaConf.to_container(env_cfg, resolve=True) if isinstance(env_cfg, DictConfig) else dict(env_cfg)
+    if isinstance(env_cfg, DictConfig):
+        values: dict[str, Any] = OmegaConf.to_container(env_cfg, resolve=True)  # type: ignore[assignment]
+    else:
+        values = dict(env_cfg)
     validate_env_config(values)  # fail early, naming the key
     return values
 

@@ -1,0 +1,41 @@
+"""The thin entry points, called as plain functions on the real composed configs."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import pytest
+
+from memrl.bench import bench
+from memrl.preview import preview
+
+
+def test_preview_writes_non_blank_pngs(compose_cfg, tmp_path):
+    cfg = compose_cfg("preview", ["steps=[0,5]", "policy=random"])
+    files = preview(cfg, tmp_path)
+    obs = cv2.imread(str(files.observations), cv2.IMREAD_GRAYSCALE)
+    scene = cv2.imread(str(files.scene))
+    assert obs.shape == (2 * (84 * 4 + 8), 4 * (84 * 4 + 8))
+    assert obs.std() > 10 and scene.std() > 10
+
+
+def test_preview_rejects_unknown_policy(compose_cfg, tmp_path):
+    with pytest.raises(ValueError, match="policy"):
+        preview(compose_cfg("preview", ["policy=fast"]), tmp_path)
+
+
+def test_bench_env_measures_both_envs_and_writes_json(compose_cfg, tmp_path):
+    cfg = compose_cfg("bench", ["env.steps=30", "env.torchrl=true"])
+    result = bench(cfg, tmp_path)
+    env = result["env"]
+    for key in ("memrl_gym_steps_per_s", "highway_fast_gym_steps_per_s",
+                "memrl_torchrl_steps_per_s", "highway_fast_torchrl_steps_per_s"):
+        assert env[key] > 0
+    assert env["memrl_obs_shape"] == env["highway_fast_obs_shape"] == [4, 84, 84]
+    assert json.loads((tmp_path / "bench.json").read_text())["env"]["steps"] == 30
+
+
+def test_bench_rejects_unknown_benchmark(compose_cfg, tmp_path):
+    with pytest.raises(ValueError, match="unknown benchmark"):
+        bench(compose_cfg("bench", ["benchmarks=[nope]"]), tmp_path)

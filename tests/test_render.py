@@ -1,0 +1,119 @@
+"""The OpenCV bird's-eye view: geometry of the crop, shades, grayscale, any-car centring."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs.transforms.functional import rgb_to_grayscale
+
+from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.render import PALETTE, gray_palette
+
+LAT, LON = 0.2, 0.8  # default m/px across / along the road
+
+
+def centroid(mask: np.ndarray) -> tuple[float, float]:
+    """(col, row) of the mask's pixel centres, in continuous pixel coordinates."""
+    rows, cols = np.nonzero(mask)
+    return cols.mean() + 0.5, rows.mean() + 0.5
+
+
+def scene(**config) -> LaneChangeEnv:
+    env = LaneChangeEnv(config={"target_lane": 1, **config})
+    env.reset(seed=0)
+    env.remove_others()
+    return env
+
+
+def test_gray_levels_stay_distinct():
+    levels = sorted(gray_palette(PALETTE).values())
+    assert min(np.diff(levels)) >= 25, levels
+
+
+def test_agent_at_crop_centre_with_its_size():
+    env = scene()
+    env.place_agent(500.0, 4.0, speed=5.0)
+    img = env.observe_from(env.vehicle, env.target_lane)[0]
+    agent = img == gray_palette(PALETTE)["agent"]
+    col, row = centroid(agent)
+    assert col == pytest.approx(42.0, abs=0.5) and row == pytest.approx(42.0, abs=0.5)
+    rows, cols = np.nonzero(agent)
+    assert cols.max() - cols.min() + 1 == round(2.0 / LAT)   # 2 m wide -> 10 px
+    assert rows.max() - rows.min() + 1 == 6  # 5 m long -> 6.25 px
+
+
+@pytest.mark.parametrize(("dx", "dy"), [(10.0, 4.0), (-20.0, -4.0), (25.0, 0.0), (-8.0, 3.0)])
+def test_other_car_lands_where_its_offset_predicts(dx, dy):
+    env = scene()
+    env.place_agent(500.0, 2.0, speed=5.0)  # on the lane line, so +-4 m stays on the road
+    env.add_car(500.0 + dx, 2.0 + dy, speed=5.0)
+    img = env.observe_from(env.vehicle, env.target_lane)[0]
+    other = img == gray_palette(PALETTE)["constant"]
+    col, row = centroid(other)
+    assert col == pytest.approx(42.0 + dy / LAT, abs=0.5)
+    assert row == pytest.approx(42.0 - dx / LON, abs=0.5)
+
+
+def test_crop_centred_on_another_car_shows_the_agent_as_learned():
+    env = scene()
+    env.place_agent(500.0, 0.0, speed=5.0)
+    other = env.add_car(510.0, 4.0, speed=5.0)
+    img = env.observe_from(other, target_lane=0)[0]
+    g = gray_palette(PALETTE)
+    col, row = centroid(img == g["agent"])
+    assert (col, row) == (pytest.approx(42.0, abs=0.5), pytest.approx(42.0, abs=0.5))
+    col, row = centroid(img == g["learned"])
+    assert col == pytest.approx(42.0 - 4.0 / LAT, abs=0.5)
+    assert row == pytest.approx(42.0 + 10.0 / LON, abs=0.5)
+    # the target-lane shade now marks lane 0, left of this car
+    assert img[5, 42 - 20] == g["target_lane"] and img[5, 42] == g["road"]
+
+
+def test_gray_drawing_equals_torchrl_grayscale_of_rgb_drawing():
+    gray_env = LaneChangeEnv(config={"bev": {"grayscale": True}})
+    rgb_env = LaneChangeEnv(config={"bev": {"grayscale": False}})
+    for seed in range(3):
+        g, _ = gray_env.reset(seed=seed)
+        c, _ = rgb_env.reset(seed=seed)
+        for action in [0, 2, 6, 8, 4]:
+            g = gray_env.step(action)[0]
+            c = rgb_env.step(action)[0]
+        assert c.shape == (3, 84, 84) and g.shape == (1, 84, 84)
+        expected = rgb_to_grayscale(torch.from_numpy(c)).numpy()
+        assert np.array_equal(g, expected)
+
+
+def test_road_edges_lane_line_and_target_shade_columns():
+    env = scene()
+    env.place_agent(500.0, 0.0, speed=5.0)  # lane 0 centre at column 42
+    img = env.observe_from(env.vehicle, env.target_lane)[0]
+    g = gray_palette(PALETTE)
+    # left edge at y=-2 m -> col 32; right edge at y=6 m -> col 72; lane line at y=2 m -> 52
+    assert img[10, 31] == g["offroad"] and img[10, 32] == g["marking"]
+    assert img[10, 71] == g["marking"] and img[10, 72] == g["offroad"]
+    assert img[10, 40] == g["road"] and img[10, 60] == g["target_lane"]
+    line = img[:, 51] == g["marking"]  # 1 px band [51.5, 52.5): the pixel centred at 51.5
+    assert 0.3 < line.mean() < 0.7  # dashed: about half the rows
+
+
+def test_dashes_move_with_the_car_and_repeat_every_period():
+    env = scene()
+    # x chosen so that no dash end falls on a pixel boundary (no rounding ties)
+    env.place_agent(499.9, 0.0, speed=5.0)
+    a = env.observe_from(env.vehicle, 1)[0, :, 51].copy()
+    env.place_agent(501.5, 0.0, speed=5.0)  # 1.6 m = 2 px further
+    b = env.observe_from(env.vehicle, 1)[0, :, 51].copy()
+    env.place_agent(505.9, 0.0, speed=5.0)  # one dash period (6 m) further
+    c = env.observe_from(env.vehicle, 1)[0, :, 51].copy()
+    assert not np.array_equal(a, b)
+    assert np.array_equal(np.roll(a, 2)[5:-5], b[5:-5])
+    assert np.array_equal(a[2:-2], c[2:-2])
+
+
+def test_scene_picture_is_rgb_and_not_blank():
+    env = LaneChangeEnv(render_mode="rgb_array")
+    env.reset(seed=0)
+    pic = env.render()
+    assert pic.shape == (500, 120, 3) and pic.dtype == np.uint8
+    assert (pic == np.array(PALETTE["agent"], dtype=np.uint8)).all(-1).sum() > 100
