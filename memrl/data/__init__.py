@@ -1,0 +1,1 @@
+"""Prior-knowledge datasets and the replay buffers of each mode."""

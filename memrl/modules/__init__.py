@@ -1,0 +1,1 @@
+"""Networks (Table I Q-network) and policies."""
