@@ -26,7 +26,7 @@ class PreviewFiles:
     scene: Path
 
 
-def _grid(rows: list[np.ndarray], pad: int = 4, value: int = 128) -> np.ndarray:
+def _grid(rows: list[list[np.ndarray]], pad: int = 4, value: int = 128) -> np.ndarray:
     """Tile equally sized images (H, W[, 3]) row by row with a separating border."""
     def pad_img(img: np.ndarray) -> np.ndarray:
         widths = ((pad, pad), (pad, pad)) + (((0, 0),) if img.ndim == 3 else ())

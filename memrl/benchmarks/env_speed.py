@@ -33,7 +33,7 @@ def highway_fast_config(vehicles_count: int, stack: int = 4) -> dict[str, Any]:
 
 def _time_gym(env: gym.Env, steps: int, seed: int) -> tuple[float, np.ndarray]:
     rng = np.random.default_rng(seed)
-    n_actions = int(env.action_space.n)
+    n_actions = int(env.action_space.n)  # type: ignore[attr-defined]
     obs, _ = env.reset(seed=seed)
     for _ in range(20):  # warm-up: first renders allocate surfaces and caches
         obs, _, term, trunc, _ = env.step(int(rng.integers(n_actions)))

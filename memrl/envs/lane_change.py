@@ -183,7 +183,7 @@ class LaneChangeEnv(AbstractEnv):
                     placed.append((lane, x))
                     break
         speeds = rng.uniform(*cfg.other_speed, size=len(placed))
-        cars = []
+        cars: list[CurvatureVehicle] = []
         for lane in range(cfg.lanes_count):
             xs = sorted(x for pl, x in placed if pl == lane)
             lane_speeds = sorted(speeds[len(cars): len(cars) + len(xs)])

@@ -89,7 +89,7 @@ class BEVRenderer:
         self.show_target_lane = show_target_lane
         self.dash_length = dash_length
         rgb = dict(PALETTE if palette is None else palette)
-        self.palette: dict[str, Color] = rgb if channels == 3 else gray_palette(rgb)
+        self.palette: dict[str, Color] = dict(rgb) if channels == 3 else dict(gray_palette(rgb))
         self._half_span = 0.5 * view.height * view.longitudinal_scale  # [m] ahead/behind shown
 
     def to_pixels(self, center: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from torchrl.envs.libs.gym import GymEnv, default_info_dict_reader
 
 from memrl.envs import ENV_ID, register_envs
 from memrl.envs.config import validate_env_config
+from memrl.envs.lane_change import LaneChangeEnv
 
 INFO_KEYS = ("collided", "on_target_lane", "reached_target")
 """Per-step flags copied from the gym ``info`` dict into the tensordict."""
@@ -36,6 +37,12 @@ def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]
         values = dict(env_cfg)
     validate_env_config(values)  # fail early, naming the key
     return values
+
+
+def unwrap(env: TransformedEnv | GymEnv) -> LaneChangeEnv:
+    """The :class:`LaneChangeEnv` inside a TorchRL env (to read or edit its world state)."""
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    return base._env.unwrapped  # type: ignore[union-attr]
 
 
 def make_env(

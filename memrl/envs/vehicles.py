@@ -37,6 +37,10 @@ class CurvatureVehicle(Vehicle):
     moves the car along its heading and turns it by ``speed * curvature * dt``.
     """
 
+    position: np.ndarray
+    heading: float
+    speed: float
+
     def __init__(
         self,
         road: Road,

@@ -1,0 +1,66 @@
+"""The policy interface shared by the agent, scripted drivers, humans and evaluation.
+
+A :class:`DrivingPolicy` picks one of the 9 actions each step from the env's world state
+and/or the agent's stacked pixels. :class:`PolicyModule` runs any of them inside a TorchRL
+rollout or collector (it reads the world state through the env it was given).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.vehicles import N_ACTIONS
+
+
+class DrivingPolicy(ABC):
+    """Decides the agent's action; may read the world state (privileged) or only pixels."""
+
+    def reset(self, env: LaneChangeEnv) -> None:  # noqa: B027
+        """Called after each env reset (default: nothing to prepare)."""
+
+    @abstractmethod
+    def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
+        """Action index in [0, 9) for the current step; ``pixels`` is uint8 ``[4, H, W]``."""
+
+
+class RandomPolicy(DrivingPolicy):
+    """Uniform over the 9 actions, from its own seeded generator."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
+        return int(self.rng.integers(N_ACTIONS))
+
+
+class PolicyModule(TensorDictModuleBase):
+    """Wraps a :class:`DrivingPolicy` as a TorchRL policy: reads ``pixels``, writes ``action``.
+
+    Args:
+        policy: the driving policy.
+        env: the gym env whose world state the policy may read (``unwrap(torchrl_env)``).
+    """
+
+    in_keys = ["pixels"]
+    out_keys = ["action"]
+
+    def __init__(self, policy: DrivingPolicy, env: LaneChangeEnv) -> None:
+        super().__init__()
+        self.policy = policy
+        self.env = env
+        self._last_steps = -1
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        if self.env.steps == 0 and self._last_steps != 0:
+            self.policy.reset(self.env)
+        self._last_steps = self.env.steps
+        pixels = td["pixels"].cpu().numpy()
+        action = self.policy.act(self.env, pixels)
+        td.set("action", torch.tensor(action, dtype=torch.int64))
+        return td
