@@ -1,0 +1,84 @@
+"""Replay buffers of the three modes, built on TorchRL.
+
+- Default and mode B stage 2: a ``TensorDictReplayBuffer`` over a ``LazyTensorStorage``
+  (FIFO once full), uniform sampling.
+- Mode A: :class:`PriorKnowledgeBuffer`, TorchRL's ``OfflineToOnlineReplayBuffer`` whose
+  offline part holds the prior knowledge (``demo_fraction`` of the capacity, never
+  overwritten) and whose online part holds the agent's transitions FIFO. ``stratified``
+  sampling draws exactly ``round(demo_fraction * batch)`` demos per batch (TorchRL's own);
+  ``proportional`` draws the demo count from a binomial with the demos' share of the stored
+  transitions, which is exactly uniform sampling over one storage holding both.
+- Mode B stage 1: a buffer holding only prior knowledge.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.offline_to_online import OfflineToOnlineReplayBuffer
+
+
+def agent_buffer(capacity: int, batch_size: int) -> TensorDictReplayBuffer:
+    """FIFO replay of the agent's own transitions, uniform sampling."""
+    return TensorDictReplayBuffer(storage=LazyTensorStorage(capacity), batch_size=batch_size)
+
+
+def demo_buffer(demos: TensorDictBase, batch_size: int | None = None) -> ReplayBuffer:
+    """A buffer filled with ``demos`` (its capacity is their count: nothing else gets in)."""
+    rb = ReplayBuffer(storage=LazyTensorStorage(len(demos)), batch_size=batch_size)
+    rb.extend(demos)
+    return rb
+
+
+class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
+    """Mode A: prior knowledge in a fixed slice of the buffer, agent data FIFO in the rest.
+
+    Args:
+        demos: prior-knowledge transitions; the first ``round(demo_fraction * capacity)`` are
+            kept (all of them when there are fewer).
+        capacity: total transitions (demos + agent).
+        demo_fraction: share of the capacity reserved for demos.
+        batch_size: default batch size.
+        sampling: ``stratified`` or ``proportional``.
+    """
+
+    def __init__(self, demos: TensorDictBase, capacity: int, demo_fraction: float,
+                 batch_size: int, sampling: str = "stratified") -> None:
+        if sampling not in ("stratified", "proportional"):
+            raise ValueError(f"sampling must be stratified or proportional, got {sampling!r}")
+        n_demo = int(round(demo_fraction * capacity))
+        if len(demos) == 0:
+            raise ValueError("mode A needs at least one prior-knowledge transition")
+        kept = demos[: min(n_demo, len(demos))]
+        super().__init__(demo_buffer(kept), online_capacity=capacity - n_demo,
+                         offline_fraction=demo_fraction, batch_size=batch_size)
+        self.sampling = sampling
+        self.capacity = capacity
+        self.last_demo_count = 0
+
+    def sample(self, batch_size: int | None = None) -> TensorDictBase:
+        """A batch; ``last_demo_count`` tells how many of its items are demos."""
+        batch_size = batch_size or self._batch_size
+        if self.sampling == "proportional" and len(self.online_buffer) > 0:
+            share = len(self.offline_buffer) / len(self)
+            n_demo = int(torch.binomial(torch.tensor(float(batch_size)), torch.tensor(share)))
+            parts = [b.sample(n) for b, n in ((self.offline_buffer, n_demo),
+                                              (self.online_buffer, batch_size - n_demo)) if n > 0]
+            out = torch.cat(parts) if len(parts) > 1 else parts[0]
+        else:
+            out = super().sample(batch_size)
+        self.last_demo_count = int(out["is_demo"].sum())
+        return out
+
+    def dumps(self, path: str | Path) -> None:
+        """Save the agent part (TorchRL buffer checkpointing); the demo part is immutable and is
+        rebuilt from its dataset, whose identity the checkpoint records."""
+        Path(path).mkdir(parents=True, exist_ok=True)
+        self.online_buffer.dumps(path)
+
+    def loads(self, path: str | Path) -> None:
+        self.online_buffer.loads(path)
+

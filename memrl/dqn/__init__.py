@@ -1,0 +1,1 @@
+"""Double DQN with prior knowledge: config schemas, learner, buffers, loop, checkpoints."""

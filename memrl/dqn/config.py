@@ -1,0 +1,135 @@
+"""Typed schemas of the training config groups (``agent``, ``buffer``, ``mode``).
+
+Registered with Hydra's ConfigStore so that a misspelt key fails at composition, and checked
+by :func:`check_train_config` so that an out-of-range value fails at start, naming the key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from omegaconf import DictConfig
+
+
+@dataclass
+class AgentConfig:
+    """Double DQN learner (Table II where the paper fixes a value)."""
+
+    gamma: float = 0.95
+    """Discount factor (Table II)."""
+    lr: float = 2.5e-4
+    """Adam learning rate."""
+    batch_size: int = 32
+    """Transitions per update."""
+    target_update_interval: int = 500
+    """Updates between hard copies of the online network into the target network."""
+    train_every: int = 4
+    """Env steps between update rounds."""
+    updates_per_round: int = 1
+    """Gradient updates per round."""
+    warmup_frames: int = 500
+    """Env steps with random actions before the first update (agent data only)."""
+    eps_start: float = 1.0
+    """Initial epsilon of the linearly decaying epsilon-greedy policy (Table II)."""
+    eps_end: float = 0.05
+    """Final epsilon."""
+    eps_decay_frames: int = 50_000
+    """Env steps over which epsilon decays linearly from eps_start to eps_end."""
+    grad_clip: float = 10.0
+    """Max global gradient norm (0: no clipping)."""
+    threads: int = 0
+    """torch intra-op threads (0: leave torch's default)."""
+
+
+@dataclass
+class BufferConfig:
+    """Replay buffer."""
+
+    capacity: int = 100_000
+    """Total transitions held (Table II: 1e5), prior knowledge included in mode A."""
+
+
+@dataclass
+class Stage1Config:
+    """Mode B stage 1: train on prior knowledge only, until behaviour converges."""
+
+    max_updates: int = 5000
+    """Hard cap on stage-1 updates."""
+    check_every: int = 250
+    """Updates between convergence checks."""
+    holdout_fraction: float = 0.1
+    """Share of demo transitions kept out of the buffer to measure action agreement."""
+    agreement: float = 0.9
+    """Stop when the greedy action equals the demo action on this share of held-out demos."""
+    plateau_checks: int = 4
+    """Stop when the mean TD loss improved less than ``plateau_tol`` (relative) over this many checks."""
+    plateau_tol: float = 0.02
+    """Relative loss improvement under which the loss counts as flat."""
+    criterion: str = "agreement_or_plateau"
+    """agreement | plateau | agreement_or_plateau | max_updates."""
+
+
+@dataclass
+class Stage2Config:
+    """Mode B stage 2: plain double DQN from the stage-1 weights."""
+
+    eps_start: float = 0.3
+    """Stage 2 starts less random than a fresh agent: the stage-1 network already drives."""
+    eps_end: float = 0.05
+    """Final epsilon."""
+    eps_decay_frames: int = 50_000
+    """Env steps of the linear decay."""
+
+
+@dataclass
+class ModeConfig:
+    """How prior knowledge is used: default (none), A or B."""
+
+    name: str = "default"
+    """default | A | B."""
+    demos_path: Any = None
+    """Dataset folder of prior knowledge (None: the cached scripted-driver example)."""
+    demo_fraction: float = 0.1
+    """Mode A: share of the buffer permanently held by prior knowledge."""
+    sampling: str = "stratified"
+    """Mode A: stratified (exactly round(demo_fraction x batch) demos per batch) or
+    proportional (uniform over the union: the demo count per batch is binomial)."""
+    stage1: Stage1Config = field(default_factory=Stage1Config)
+    stage2: Stage2Config = field(default_factory=Stage2Config)
+
+
+class TrainConfigError(ValueError):
+    """A training config value is out of range."""
+
+
+def _need(ok: bool, key: str, message: str) -> None:
+    if not ok:
+        raise TrainConfigError(f"config '{key}': {message}")
+
+
+def check_train_config(cfg: DictConfig) -> None:
+    """Check values that a schema's types cannot: ranges and choices; names the bad key."""
+    a, m = cfg.agent, cfg.mode
+    _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
+    _need(a.lr > 0, "agent.lr", "must be > 0")
+    for key in ("batch_size", "target_update_interval", "train_every", "updates_per_round"):
+        _need(a[key] >= 1, f"agent.{key}", f"must be >= 1, got {a[key]}")
+    _need(0 <= a.eps_end <= a.eps_start <= 1, "agent.eps_start",
+          f"need 0 <= eps_end <= eps_start <= 1, got {a.eps_start} -> {a.eps_end}")
+    _need(a.eps_decay_frames >= 1, "agent.eps_decay_frames", "must be >= 1")
+    _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity", "must be >= agent.batch_size")
+    _need(m.name in ("default", "A", "B"), "mode.name", f"expected default, A or B, got {m.name!r}")
+    _need(0 < m.demo_fraction < 1, "mode.demo_fraction", f"must be in (0, 1), got {m.demo_fraction}")
+    _need(m.sampling in ("stratified", "proportional"), "mode.sampling",
+          f"expected stratified or proportional, got {m.sampling!r}")
+    s1 = m.stage1
+    _need(s1.criterion in ("agreement", "plateau", "agreement_or_plateau", "max_updates"),
+          "mode.stage1.criterion", f"unknown criterion {s1.criterion!r}")
+    _need(0 < s1.holdout_fraction < 1, "mode.stage1.holdout_fraction", "must be in (0, 1)")
+    _need(s1.max_updates >= 1 and s1.check_every >= 1, "mode.stage1.max_updates", "must be >= 1")
+    s2 = m.stage2
+    _need(0 <= s2.eps_end <= s2.eps_start <= 1, "mode.stage2.eps_start",
+          "need 0 <= eps_end <= eps_start <= 1")
+    _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
+          "set total_frames or total_episodes (or both)")

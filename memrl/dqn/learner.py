@@ -1,0 +1,82 @@
+"""The double-DQN learner: TorchRL ``DQNLoss`` with eq. (1)'s 1/2, Adam, hard target updates."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.modules import EGreedyModule, QValueActor
+from torchrl.objectives import DQNLoss, HardUpdate
+
+from memrl.dqn.config import AgentConfig
+from memrl.envs.vehicles import N_ACTIONS
+from memrl.modules.qnet import QNetwork, make_q_actor
+
+
+class Learner:
+    """Online/target Q-networks, optimizer and update step.
+
+    The loss is eq. (1): the mean of 1/2 (r + gamma Q_target(s', argmax_a Q(s', a)) - Q(s, a))^2,
+    with no bootstrap on terminated transitions. TorchRL's ``l2`` distance has no 1/2; the
+    update multiplies it by 0.5.
+    """
+
+    def __init__(self, cfg: AgentConfig | Any) -> None:
+        self.cfg = cfg
+        self.actor: QValueActor = make_q_actor()
+        self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
+        self.loss_module = DQNLoss(self.actor, loss_function="l2", delay_value=True,
+                                   double_dqn=True, action_space="categorical")
+        self.loss_module.make_value_estimator(gamma=cfg.gamma)
+        self.target_updater = HardUpdate(self.loss_module,
+                                         value_network_update_interval=cfg.target_update_interval)
+        self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.lr)
+        self.updates = 0
+
+    def loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """Eq. (1) on a batch (differentiable)."""
+        return 0.5 * self.loss_module(batch)["loss"]
+
+    def update(self, batch: TensorDictBase) -> float:
+        """One gradient step and a target-update tick; returns the loss value."""
+        loss = self.loss(batch)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), self.cfg.grad_clip)
+        self.optimizer.step()
+        self.target_updater.step()
+        self.updates += 1
+        return float(loss.detach())
+
+    def sync_target(self) -> None:
+        """Copy the online network into the target network now."""
+        self.target_updater.init_()
+
+    @torch.no_grad()
+    def q_values(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Online Q-values ``[..., 9]`` of uint8 stacked pixels."""
+        return self.qnet(pixels)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"loss_module": self.loss_module.state_dict(),
+                "optimizer": self.optimizer.state_dict(), "updates": self.updates}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.loss_module.load_state_dict(state["loss_module"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.updates = int(state["updates"])
+
+    def reset_optimizer(self) -> None:
+        """Fresh Adam moments (mode B stage 2 starts a new optimisation)."""
+        self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)
+
+
+def make_exploration(actor: QValueActor, eps_start: float, eps_end: float,
+                     decay_frames: int) -> EGreedyModule:
+    """TorchRL's linearly annealed epsilon-greedy module over the 9 actions."""
+    from torchrl.data import Categorical
+
+    return EGreedyModule(Categorical(N_ACTIONS, dtype=torch.int64), eps_init=eps_start,
+                         eps_end=eps_end, annealing_num_steps=decay_frames)
