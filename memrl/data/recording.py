@@ -1,0 +1,171 @@
+"""Record episodes of any :class:`DrivingPolicy` through the TorchRL env into demo datasets.
+
+Episodes run through ``make_env`` + :class:`PolicyModule`, so the stored pixels are exactly
+what training sees. Episode ``i`` is reset with seed ``seed + i``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tensordict import TensorDict
+from tqdm import tqdm
+
+from memrl.data.demos import EnvCfg, save_demos
+from memrl.data.transitions import to_transitions
+from memrl.envs.config import LaneChangeConfig
+from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
+from memrl.modules.policy import DrivingPolicy, PolicyModule
+
+log = logging.getLogger(__name__)
+
+
+class StopRecording(Exception):  # noqa: N818 - a request, not an error
+    """Raised by a policy (e.g. the human pressing Esc) to end a recording early; the episode
+    under way is dropped and the finished ones are kept."""
+
+
+@dataclass
+class EpisodeStats:
+    """Outcome of one recorded episode."""
+
+    seed: int
+    steps: int
+    """Action steps taken."""
+    episode_return: float
+    """Sum of rewards."""
+    collided: bool
+    reached_target: bool
+    """All four corners of the car inside the target lane at some step."""
+
+    @property
+    def stable(self) -> bool:
+        """No collision and the target lane reached: what prior knowledge should show."""
+        return not self.collided and self.reached_target
+
+
+def summarize(episodes: list[EpisodeStats]) -> dict[str, Any]:
+    """Counts and rates: survival (no collision), goal (target lane reached), mean return."""
+    n = len(episodes)
+    survival = sum(not e.collided for e in episodes)
+    goal = sum(e.reached_target for e in episodes)
+    return {
+        "episodes": n,
+        "transitions": sum(e.steps for e in episodes),
+        "survival": survival,
+        "goal": goal,
+        "survival_rate": survival / n if n else 0.0,
+        "goal_rate": goal / n if n else 0.0,
+        "mean_return": sum(e.episode_return for e in episodes) / n if n else 0.0,
+    }
+
+
+@dataclass
+class Recording:
+    """Recorded episodes and the transitions of the kept ones (one TensorDict per episode)."""
+
+    episodes: list[EpisodeStats] = field(default_factory=list)
+    kept: list[int] = field(default_factory=list)
+    """Indices into ``episodes`` of the kept episodes."""
+    transitions: list[TensorDict] = field(default_factory=list)
+    stopped_early: bool = False
+
+    def stats(self) -> dict[str, Any]:
+        return {"recorded": summarize(self.episodes),
+                "kept": summarize([self.episodes[i] for i in self.kept])}
+
+
+def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, seed: int = 0,
+                    keep_stable: bool = True, frame_stack: int = 4, render: bool = False,
+                    progress: bool = False) -> Recording:
+    """Run ``episodes`` episodes of ``policy`` and keep the transitions of the chosen ones.
+
+    Args:
+        env_cfg: lane-change env config.
+        policy: the driver; it may raise :class:`StopRecording` to end early.
+        episodes: episodes to run.
+        seed: episode ``i`` is reset with ``seed + i``.
+        keep_stable: keep only episodes without collision that reached the target lane;
+            False keeps all.
+        frame_stack: stacked frames per observation.
+        render: build the env with ``render_mode='rgb_array'`` (for a policy that shows the
+            scene, like the keyboard recorder).
+        progress: show a progress bar.
+    """
+    env = make_env(env_cfg, frame_stack=frame_stack, render_mode="rgb_array" if render else None)
+    module = PolicyModule(policy, unwrap(env))
+    duration = unwrap(env).cfg.duration
+    rec = Recording()
+    try:
+        for i in tqdm(range(episodes), desc="record", unit="ep", disable=not progress):
+            td = env.reset(seed=seed + i)
+            try:
+                rollout = env.rollout(duration, module, auto_reset=False, tensordict=td,
+                                      break_when_any_done=True)
+            except StopRecording:
+                log.info("recording stopped after %d finished episodes", i)
+                rec.stopped_early = True
+                break
+            last = rollout[-1]["next"]
+            stats = EpisodeStats(
+                seed=seed + i, steps=rollout.shape[0],
+                episode_return=float(rollout["next", "reward"].sum()),
+                collided=bool(last["collided"]), reached_target=bool(last["reached_target"]),
+            )
+            rec.episodes.append(stats)
+            if stats.stable or not keep_stable:
+                rec.kept.append(i)
+                rec.transitions.append(to_transitions(rollout, is_demo=True))
+    finally:
+        env.close()
+        close = getattr(policy, "close", None)
+        if callable(close):
+            close()
+    return rec
+
+
+def env_config_values(env_cfg: EnvCfg) -> dict[str, Any]:
+    """Plain dict of a (partial) env config, for the metadata."""
+    if isinstance(env_cfg, LaneChangeConfig):
+        return asdict(env_cfg)
+    return env_kwargs(env_cfg)
+
+
+def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.PathLike, *,
+                      episodes: int, seed: int = 0, keep_stable: bool = True, source: str,
+                      frame_stack: int = 4, render: bool = False, progress: bool = False,
+                      overwrite: bool = False, extra: Mapping[str, Any] | None = None,
+                      ) -> tuple[Path | None, Recording]:
+    """Record episodes and save the kept ones as a dataset (None when nothing was kept).
+
+    Args:
+        env_cfg, policy, episodes, seed, keep_stable, frame_stack, render, progress: as
+            :func:`record_episodes`.
+        path: dataset folder to write.
+        source: who made the transitions (``scripted``, ``human``, ...), stored in the metadata.
+        overwrite: replace an existing dataset at ``path``.
+        extra: more metadata entries (e.g. the policy's config).
+    """
+    rec = record_episodes(env_cfg, policy, episodes=episodes, seed=seed, keep_stable=keep_stable,
+                          frame_stack=frame_stack, render=render, progress=progress)
+    if not rec.transitions:
+        log.warning("no episode kept out of %d recorded; nothing saved", len(rec.episodes))
+        return None, rec
+    kept = [rec.episodes[i] for i in rec.kept]
+    metadata = {
+        "source": source,
+        "seed": seed,
+        "keep": "stable" if keep_stable else "all",
+        "env_config": env_config_values(env_cfg),
+        "frame_stack": frame_stack,
+        "counts": {"episodes": len(kept), "episodes_recorded": len(rec.episodes)},
+        "stats": rec.stats(),
+        "episodes": [asdict(e) for e in kept],
+        **dict(extra or {}),
+    }
+    return save_demos(rec.transitions, path, metadata, overwrite=overwrite), rec
