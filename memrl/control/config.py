@@ -17,7 +17,22 @@ PID units (the paper's P=2000, I=100, D=0, Sec. IV-D, used for both loops):
   the rate, so the loop has an integrator and needs no I to reach zero static error; its
   crossover is P x steer_rate_max / 100 / wheelbase = 2000 x 0.006 / 2.8 ~ 4.3 rad/s (time
   constant ~0.23 s). I=100 %/(rad/m x s) makes the loop type 2, so a ramp of curvature
-  commands (repeated curvature actions) is tracked without steady lag.
+  commands (repeated curvature actions) is tracked without steady lag. Why a rate and not an
+  angle: curvature follows the steering angle statically (kappa ~ angle / wheelbase), so an
+  angle command would make P alone leave a static error of 1 / (1 + loop gain) that I=100,
+  20x slower than P, removes only over tens of seconds; a loop gain high enough to hide that
+  (>~20) oscillates with the actuator and yaw lags. Commanding the rate puts the integrator in
+  the actuator, where P=2000 gives a well-damped loop (below) and I only helps ramps.
+
+Step responses with these defaults on the default car, loops closed on the true state
+(``memrl.control.response.step_response``; checked by tests/test_pid.py):
+
+* speed, steps of 0.5-2 m/s at 8-10 m/s: 90 % of the step in < 1.5 s (measured 1.34-1.37 s),
+  overshoot < 4 % (2.9-3.7 %), within 5 % of the step after < 1.6 s (1.51-1.55 s), error
+  < 0.03 m/s after 20 s. 2 -> 14 m/s saturates the drive force for ~4 s: overshoot 0.2 %,
+  within 2 % after 5.3 s; without anti-windup 12 % overshoot and still 0.76 m/s off after 20 s.
+* curvature, steps of 0.02 and -0.05 rad/m at 4-12 m/s: 90 % in < 0.5 s (0.42-0.48 s),
+  overshoot < 6 % (1.2-4.8 %), within 2 % after < 1.2 s (0.53-1.12 s).
 """
 
 from __future__ import annotations

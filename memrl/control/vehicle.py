@@ -2,7 +2,8 @@
 
 Coordinates as in the env: x along the road, y across it [m], heading 0 along +x [rad].
 
-* **Longitudinal**: ``m dv/dt = F - 1/2 rho CdA v^2 - c_rr m g + m vy r``. ``F`` follows the
+* **Longitudinal**: ``m dv/dt = F - 1/2 rho CdA v^2 - c_rr m g + m vy r - F_yf sin(steer)``
+  (the last two terms only in the dynamic regime). ``F`` follows the
   accelerator force demand (clamped to [-brake_force_max, drive_force_max]) with a first-order
   lag; braking never drives the car backwards.
 * **Lateral**: the linear-tyre dynamic single-track (bicycle) model in body axes (lateral
@@ -104,20 +105,18 @@ class VehicleModel:
             steer = math.copysign(c.steer_lock, steer)
             s.steer_rate = 0.0
         s.steer = steer
-        # longitudinal: braking stops the car but never reverses it
+        # lateral: blend of the kinematic and dynamic bicycle models (weight w of the dynamic)
         v = s.speed
-        accel = (s.force - self.resistance(v)) / c.mass + s.lateral_speed * s.yaw_rate
-        s.speed = max(v + accel * h, 0.0)
-        # lateral: blend of the kinematic and dynamic bicycle models
-        vy_kin, r_kin = self._kinematic(s.speed, s.steer)
         w = min(max((v - c.kinematic_below) / (c.dynamic_above - c.kinematic_below), 0.0), 1.0)
+        vy_dot = r_dot = coupling = 0.0
         if w > 0.0:
-            vy_dot, r_dot = self._dynamic_rates(v, s.lateral_speed, s.yaw_rate, s.steer)
-            vy_dyn, r_dyn = s.lateral_speed + vy_dot * h, s.yaw_rate + r_dot * h
-            s.lateral_speed = w * vy_dyn + (1.0 - w) * vy_kin
-            s.yaw_rate = w * r_dyn + (1.0 - w) * r_kin
-        else:
-            s.lateral_speed, s.yaw_rate = vy_kin, r_kin
+            vy_dot, r_dot, coupling = self._dynamic_rates(v, s.lateral_speed, s.yaw_rate, s.steer)
+        # longitudinal: braking stops the car but never reverses it
+        accel = (s.force - self.resistance(v)) / c.mass + w * coupling
+        s.speed = max(v + accel * h, 0.0)
+        vy_kin, r_kin = self._kinematic(s.speed, s.steer)
+        s.lateral_speed = w * (s.lateral_speed + vy_dot * h) + (1.0 - w) * vy_kin
+        s.yaw_rate = w * (s.yaw_rate + r_dot * h) + (1.0 - w) * r_kin
         # pose
         cos, sin = math.cos(s.heading), math.sin(s.heading)
         s.x += (v * cos - s.lateral_speed * sin) * h
@@ -129,15 +128,18 @@ class VehicleModel:
         tan = math.tan(steer)
         return v * self.cfg.cg_to_rear * tan / self.wheelbase, v * tan / self.wheelbase
 
-    def _dynamic_rates(self, v: float, vy: float, r: float, steer: float) -> tuple[float, float]:
-        """d(vy)/dt and d(r)/dt of the linear-tyre bicycle model with friction-limited forces."""
+    def _dynamic_rates(self, v: float, vy: float, r: float, steer: float) -> tuple[float, float, float]:
+        """d(vy)/dt, d(r)/dt and the lateral forces' share of d(v)/dt (``vy r`` minus the front
+        tyre force's component along the car) of the linear-tyre bicycle model, each axle's
+        force limited by friction."""
         c = self.cfg
         v = max(v, c.kinematic_below, 0.1)
         alpha_f = steer - (vy + c.cg_to_front * r) / v
         alpha_r = -(vy - c.cg_to_rear * r) / v
         fy_f = min(max(c.front_cornering_stiffness * alpha_f, -self._front_max), self._front_max)
         fy_r = min(max(c.rear_cornering_stiffness * alpha_r, -self._rear_max), self._rear_max)
+        coupling = vy * r - fy_f * math.sin(steer) / c.mass
         fy_f *= math.cos(steer)
         vy_dot = (fy_f + fy_r) / c.mass - v * r
         r_dot = (c.cg_to_front * fy_f - c.cg_to_rear * fy_r) / c.yaw_inertia
-        return vy_dot, r_dot
+        return vy_dot, r_dot, coupling
