@@ -5,6 +5,7 @@ from __future__ import annotations
 from hydra.core.config_store import ConfigStore
 
 from memrl.control.config import DeployConfig
+from memrl.dqn.config import AgentConfig, BufferConfig, ModeConfig
 from memrl.envs.config import LaneChangeConfig
 
 
@@ -13,3 +14,7 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(group="env", name="lane_change_schema", node=LaneChangeConfig)
     cs.store(group="deploy", name="deploy_schema", node=DeployConfig)
+    cs.store(group="agent", name="dqn_schema", node=AgentConfig)
+    cs.store(group="buffer", name="buffer_schema", node=BufferConfig)
+    # A group of its own, so that `+mode=A|B` can still be added on top of the typed node.
+    cs.store(group="mode_schema", name="base", node=ModeConfig, package="mode")

@@ -29,8 +29,10 @@ class Learner:
         self.loss_module = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                                    double_dqn=True, action_space="categorical")
         self.loss_module.make_value_estimator(gamma=cfg.gamma)
-        self.target_updater = HardUpdate(self.loss_module,
-                                         value_network_update_interval=cfg.target_update_interval)
+        # TorchRL's HardUpdate copies on the step after `interval` skipped ones: pass interval - 1
+        # so that the copy happens every `target_update_interval` updates exactly.
+        self.target_updater = HardUpdate(
+            self.loss_module, value_network_update_interval=cfg.target_update_interval - 1)
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.lr)
         self.updates = 0
 
@@ -52,7 +54,9 @@ class Learner:
 
     def sync_target(self) -> None:
         """Copy the online network into the target network now."""
-        self.target_updater.init_()
+        with torch.no_grad():
+            self.loss_module.target_value_network_params.data.copy_(
+                self.loss_module.value_network_params.data)
 
     @torch.no_grad()
     def q_values(self, pixels: torch.Tensor) -> torch.Tensor:
@@ -61,11 +65,13 @@ class Learner:
 
     def state_dict(self) -> dict[str, Any]:
         return {"loss_module": self.loss_module.state_dict(),
-                "optimizer": self.optimizer.state_dict(), "updates": self.updates}
+                "optimizer": self.optimizer.state_dict(), "updates": self.updates,
+                "target_updater": self.target_updater.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.loss_module.load_state_dict(state["loss_module"])
         self.optimizer.load_state_dict(state["optimizer"])
+        self.target_updater.load_state_dict(state["target_updater"])
         self.updates = int(state["updates"])
 
     def reset_optimizer(self) -> None:

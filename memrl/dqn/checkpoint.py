@@ -1,0 +1,91 @@
+"""Checkpoints: atomic save of everything a run needs to continue exactly, and safe loading."""
+
+from __future__ import annotations
+
+import random
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
+                "checkpoint_every", "log_every", "hydra")
+"""Config keys that may differ between a run and its resumption (outputs and budgets)."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, corrupt or from another config."""
+
+
+def rng_state() -> dict[str, Any]:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+            "python": random.getstate()}
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def comparable(cfg: DictConfig) -> dict[str, Any]:
+    """The part of a config that must match for a checkpoint to be resumed."""
+    data = OmegaConf.to_container(cfg, resolve=False)
+    assert isinstance(data, dict)
+    return {k: v for k, v in data.items() if k not in RUNTIME_KEYS}
+
+
+def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested dicts."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        va, vb = a.get(key, "<missing>"), b.get(key, "<missing>")
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += config_diff(va, vb, f"{prefix}{key}.")
+        elif va != vb:
+            out.append(f"{prefix}{key}: {va!r} (checkpoint) vs {vb!r} (now)")
+    return out
+
+
+def save(ckpt_dir: Path, state: dict[str, Any], buffer: Any | None) -> None:
+    """Write ``state.pt`` and the buffer into a temporary folder, then swap it in atomically."""
+    tmp = ckpt_dir.with_name(ckpt_dir.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    torch.save(state, tmp / "state.pt")
+    if buffer is not None:
+        buffer.dumps(tmp / "buffer")
+    (tmp / "COMPLETE").write_text("ok\n")
+    old = ckpt_dir.with_name(ckpt_dir.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if ckpt_dir.exists():
+        ckpt_dir.rename(old)
+    tmp.rename(ckpt_dir)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def find(run_dir: Path) -> Path:
+    """The newest complete checkpoint of a run folder (survives a kill during ``save``)."""
+    base = run_dir / "checkpoints"
+    for name in ("last", "last.old"):
+        candidate = base / name
+        if (candidate / "COMPLETE").exists() and (candidate / "state.pt").exists():
+            return candidate
+    raise CheckpointError(f"no complete checkpoint under {base} (expected {base / 'last'})")
+
+
+def load_state(ckpt: Path, cfg: DictConfig | None = None) -> dict[str, Any]:
+    """Load ``state.pt``; with ``cfg``, refuse a checkpoint made under a different config."""
+    try:
+        state = torch.load(ckpt / "state.pt", weights_only=False)
+    except Exception as err:  # torch raises several types for a truncated or foreign file
+        raise CheckpointError(f"{ckpt / 'state.pt'}: unreadable checkpoint ({err})") from err
+    if cfg is not None:
+        diff = config_diff(state["config"], comparable(cfg))
+        if diff:
+            raise CheckpointError(f"{ckpt}: checkpoint made under another config:\n  "
+                                  + "\n  ".join(diff))
+    return state

@@ -1,0 +1,320 @@
+"""The training loop of all three modes, with episode-aligned checkpoints for exact resume.
+
+Collection runs in this process, episode by episode, through the TorchRL env and policy
+modules; every ``train_every`` env steps the learner does ``updates_per_round`` updates. Each
+episode resets with a seed derived from (run seed, episode index), and checkpoints are taken
+between episodes with every RNG state, so a resumed run repeats exactly what the killed run
+would have done after its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictSequential
+from torchrl.envs.utils import step_mdp
+from tqdm import tqdm
+
+from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, demo_buffer
+from memrl.data.transitions import to_transitions
+from memrl.dqn import checkpoint as ckpt
+from memrl.dqn.learner import Learner, make_exploration
+from memrl.dqn.records import RunRecords
+from memrl.dqn.stage1 import Stage1Progress, agreement, split_demos, stop_reason
+from memrl.envs.torchrl_env import make_env
+from memrl.envs.vehicles import N_ACTIONS
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Counters:
+    """Progress of a run (saved in checkpoints)."""
+
+    frames: int = 0
+    episodes: int = 0
+    updates: int = 0
+    update_rows: int = 0
+    stage: str = "default"
+    """default | A | B1 (prior knowledge only) | B2 (plain double DQN from B1's weights)."""
+
+
+@dataclass
+class Summary:
+    """What ``train`` returns and writes to ``summary.json``."""
+
+    run_dir: str
+    mode: str
+    seed: int
+    frames: int
+    episodes: int
+    updates: int
+    stage: str
+    mean_return_last_20: float
+    mean_survival_last_20: float
+    reached_target_last_20: float
+    stage1: dict[str, Any]
+    wall_s: float
+    updates_per_s: float
+    frames_per_s: float
+    learner_busy: float
+    """Share of wall time spent in learner updates (sampling included)."""
+    resumed_from_episode: int | None
+
+
+def episode_seed(seed: int, episode: int) -> int:
+    """Reset seed of an episode: fixed by the run seed and the episode index."""
+    return int(np.random.SeedSequence([int(seed), int(episode)]).generate_state(1)[0])
+
+
+class Trainer:
+    """One run of Default, mode A or mode B (both stages)."""
+
+    def __init__(self, cfg: DictConfig, out_dir: Path, demos: TensorDictBase | None = None,
+                 logger: Any | None = None) -> None:
+        self.cfg, self.out_dir = cfg, out_dir
+        self.mode = cfg.mode.name
+        if cfg.agent.threads:
+            torch.set_num_threads(int(cfg.agent.threads))
+        torch.manual_seed(int(cfg.seed))
+        np.random.seed(int(cfg.seed) % 2**32)
+        self.env = make_env(cfg.env)
+        self.learner = Learner(cfg.agent)
+        self.counters = Counters(stage={"default": "default", "A": "A", "B": "B1"}[self.mode])
+        self.stage1 = Stage1Progress()
+        self.demos = demos
+        if self.mode in ("A", "B") and demos is None:
+            raise ValueError(f"mode {self.mode} needs prior knowledge (demos)")
+        self.records = RunRecords(out_dir, logger)
+        self._build_stage()
+        self._acc: dict[str, list[float]] = {"loss": [], "demo": []}
+        self._recent: deque[dict[str, Any]] = deque(maxlen=20)
+        self._update_time = 0.0
+        self._losses: deque[float] = deque(maxlen=100_000)
+        self.resumed_from: int | None = None
+
+    # ------------------------------------------------------------------ construction
+    def _build_stage(self) -> None:
+        """Buffer and exploration of the current stage."""
+        a, m = self.cfg.agent, self.cfg.mode
+        capacity, batch = int(self.cfg.buffer.capacity), int(a.batch_size)
+        eps = (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames) \
+            if self.counters.stage == "B2" else (a.eps_start, a.eps_end, a.eps_decay_frames)
+        self.explore = make_exploration(self.learner.actor, *eps)
+        self.policy = TensorDictSequential(self.learner.actor, self.explore)
+        self.held_out: TensorDictBase | None = None
+        if self.counters.stage == "A":
+            assert self.demos is not None
+            self.buffer: Any = PriorKnowledgeBuffer(self.demos, capacity, float(m.demo_fraction),
+                                                    batch, sampling=str(m.sampling))
+        elif self.counters.stage == "B1":
+            assert self.demos is not None
+            train, self.held_out = split_demos(self.demos, float(m.stage1.holdout_fraction),
+                                               int(self.cfg.seed))
+            self.buffer = demo_buffer(train, batch)
+        else:
+            self.buffer = agent_buffer(capacity, batch)
+
+    # ------------------------------------------------------------------ checkpoints
+    def _state(self) -> dict[str, Any]:
+        return {
+            "config": ckpt.comparable(self.cfg),
+            "counters": dataclasses.asdict(self.counters),
+            "stage1": dataclasses.asdict(self.stage1),
+            "learner": self.learner.state_dict(),
+            "explore": self.explore.state_dict(),
+            "acc": self._acc,
+            "recent": list(self._recent),
+            "rng": ckpt.rng_state(),
+        }
+
+    def save_checkpoint(self) -> None:
+        agent_data = self.counters.stage in ("default", "A", "B2") and len(self.buffer) > 0
+        ckpt.save(self.out_dir / "checkpoints" / "last", self._state(),
+                  self.buffer if agent_data else None)
+
+    def resume(self, run_dir: Path) -> None:
+        """Continue from the last complete checkpoint of ``run_dir`` (same config required)."""
+        where = ckpt.find(run_dir)
+        state = ckpt.load_state(where, self.cfg)
+        self.counters = Counters(**state["counters"])
+        self.stage1 = Stage1Progress(**state["stage1"])
+        self.learner.load_state_dict(state["learner"])
+        self._build_stage()
+        self.explore.load_state_dict(state["explore"])
+        if (where / "buffer").exists():
+            self.buffer.loads(where / "buffer")
+        self._acc = state["acc"]
+        self._recent = deque(state["recent"], maxlen=20)
+        ckpt.set_rng_state(state["rng"])
+        self.records.rewind(self.counters.episodes, self.counters.update_rows)
+        self.resumed_from = self.counters.episodes
+        log.info("resumed %s at stage %s: %d episodes, %d frames, %d updates", where,
+                 self.counters.stage, self.counters.episodes, self.counters.frames,
+                 self.counters.updates)
+
+    # ------------------------------------------------------------------ learning
+    def _learn(self) -> None:
+        t0 = time.perf_counter()
+        batch = self.buffer.sample()
+        loss = self.learner.update(batch)
+        self._update_time += time.perf_counter() - t0
+        self.counters.updates += 1
+        self._acc["loss"].append(loss)
+        self._acc["demo"].append(float(batch["is_demo"].sum()))
+        self._losses.append(loss)
+        self._last_batch = batch
+        if self.counters.updates % int(self.cfg.log_every) == 0:
+            self._log_updates()
+
+    def _log_updates(self) -> None:
+        """One row of updates.csv over the updates since the last row."""
+        c, demo, batch = self.counters, self._acc["demo"], self._last_batch
+        if not demo:
+            return
+        wall = max(time.perf_counter() - self._t_start, 1e-9)
+        self.records.update({
+            "updates": c.updates, "env_steps": c.frames, "stage": c.stage,
+            "loss": float(np.mean(self._acc["loss"])),
+            "mean_q": float(self.learner.q_values(batch["pixels"]).mean()),
+            "demo_share": float(np.mean(demo)) / len(batch),
+            "demo_count_min": int(min(demo)), "demo_count_max": int(max(demo)),
+            "updates_per_s": (c.updates - self._updates0) / wall,
+            "frames_per_s": (c.frames - self._frames0) / wall,
+            "epsilon": float(self.explore.eps),
+        })
+        c.update_rows += 1
+        self._acc = {"loss": [], "demo": []}
+
+    def run_stage1(self) -> None:
+        """Mode B stage 1 on the demo-only buffer, then the switch to stage 2."""
+        s1, cfg = self.stage1, self.cfg.mode.stage1
+        assert self.held_out is not None
+        while not s1.done:
+            self._learn()
+            s1.updates += 1
+            if s1.updates % int(cfg.check_every) == 0 or s1.updates >= int(cfg.max_updates):
+                s1.losses.append(float(np.mean(list(self._losses)[-int(cfg.check_every):])))
+                s1.agreements.append(agreement(self.learner.qnet, self.held_out))
+                s1.stop_reason = stop_reason(cfg, s1)
+                log.info("stage 1: %d updates, loss %.4f, agreement %.3f%s", s1.updates,
+                         s1.losses[-1], s1.agreements[-1],
+                         f" -> stop: {s1.stop_reason}" if s1.stop_reason else "")
+                self._log_updates()  # every check gets its row
+                if s1.stop_reason:
+                    self._finish_stage1()
+                self.save_checkpoint()
+
+    def _finish_stage1(self) -> None:
+        self.stage1.done = True
+        path = self.out_dir / "checkpoints" / "stage1.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"loss_module": self.learner.loss_module.state_dict(),
+                    "stage1": dataclasses.asdict(self.stage1)}, path)
+        # Stage 2 starts from the stage-1 weights for both online and target networks.
+        weights = torch.load(path, weights_only=False)["loss_module"]
+        self.learner.loss_module.load_state_dict(weights)
+        self.learner.sync_target()
+        self.learner.reset_optimizer()
+        self.counters.stage = "B2"
+        self._build_stage()
+        log.info("stage 1 done (%s); stage 2 from %s", self.stage1.stop_reason, path)
+
+    def run_episode(self) -> None:
+        """One episode of collection with interleaved updates."""
+        cfg, c = self.cfg, self.counters
+        a = cfg.agent
+        td = self.env.reset(seed=episode_seed(int(cfg.seed), c.episodes))
+        ret, length, collided, reached = 0.0, 0, False, False
+        while True:
+            if c.frames < int(a.warmup_frames):
+                td["action"] = torch.randint(N_ACTIONS, ())
+            else:
+                self.policy(td)
+                self.explore.step(1)
+            td = self.env.step(td)
+            self.buffer.extend(to_transitions(td.unsqueeze(0)))
+            nxt = td["next"]
+            ret += float(nxt["reward"])
+            length += 1
+            collided = collided or bool(nxt["collided"])
+            reached = reached or bool(nxt["reached_target"])
+            c.frames += 1
+            if c.frames >= int(a.warmup_frames) and c.frames % int(a.train_every) == 0:
+                for _ in range(int(a.updates_per_round)):
+                    self._learn()
+            if bool(nxt["done"]):
+                break
+            td = step_mdp(td)
+        c.episodes += 1
+        row = {"episode": c.episodes, "env_steps": c.frames, "return": round(ret, 4),
+               "survival_steps": length, "length": length, "collided": int(collided),
+               "reached_target": int(reached), "epsilon": round(float(self.explore.eps), 5),
+               "stage": c.stage}
+        self.records.episode(row)
+        self._recent.append(row)
+
+    # ------------------------------------------------------------------ driver
+    def _budget_left(self) -> bool:
+        c, cfg = self.counters, self.cfg
+        frames_done = cfg.total_frames is not None and c.frames >= int(cfg.total_frames)
+        episodes_done = cfg.total_episodes is not None and c.episodes >= int(cfg.total_episodes)
+        return not (frames_done or episodes_done)
+
+    def run(self) -> Summary:
+        cfg, c = self.cfg, self.counters
+        self._t_start = time.perf_counter()
+        self._frames0, self._updates0 = c.frames, c.updates
+        if c.stage == "B1":
+            self.run_stage1()
+        total = cfg.total_episodes if cfg.total_episodes is not None else cfg.total_frames
+        unit = "episodes" if cfg.total_episodes is not None else "frames"
+        bar = tqdm(total=int(total), initial=c.episodes if unit == "episodes" else c.frames,
+                   desc=f"train {self.mode}", unit=unit, disable=not cfg.progress,
+                   dynamic_ncols=True)
+        while self._budget_left():
+            before = c.frames
+            self.run_episode()
+            bar.update(1 if unit == "episodes" else c.frames - before)
+            bar.set_postfix(frames=c.frames, episodes=c.episodes, eps=f"{float(self.explore.eps):.2f}",
+                            ret=f"{np.mean([r['return'] for r in self._recent]):.1f}")
+            if c.episodes % int(cfg.checkpoint_every) == 0:
+                self.save_checkpoint()
+        bar.close()
+        self.save_checkpoint()
+        return self._summary()
+
+    def _summary(self) -> Summary:
+        c, wall = self.counters, time.perf_counter() - self._t_start
+        recent = list(self._recent)
+
+        def mean(key: str) -> float:
+            return float(np.mean([float(r[key]) for r in recent])) if recent else float("nan")
+
+        summary = Summary(
+            run_dir=str(self.out_dir), mode=self.mode, seed=int(self.cfg.seed), frames=c.frames,
+            episodes=c.episodes, updates=c.updates, stage=c.stage,
+            mean_return_last_20=mean("return"), mean_survival_last_20=mean("survival_steps"),
+            reached_target_last_20=mean("reached_target"),
+            stage1=dataclasses.asdict(self.stage1), wall_s=wall,
+            updates_per_s=(c.updates - self._updates0) / max(wall, 1e-9),
+            frames_per_s=(c.frames - self._frames0) / max(wall, 1e-9),
+            learner_busy=self._update_time / max(wall, 1e-9),
+            resumed_from_episode=self.resumed_from)
+        final = self.out_dir / "checkpoints" / "final.pt"
+        torch.save({"qnet": self.learner.qnet.state_dict(),
+                    "env": OmegaConf.to_container(self.cfg.env, resolve=True),
+                    "summary": dataclasses.asdict(summary)}, final)
+        (self.out_dir / "summary.json").write_text(json.dumps(dataclasses.asdict(summary), indent=2))
+        return summary

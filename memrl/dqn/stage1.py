@@ -1,0 +1,61 @@
+"""Mode B stage 1: train on prior knowledge alone until the behaviour converges."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from tensordict import TensorDictBase
+
+from memrl.dqn.config import Stage1Config
+
+
+@dataclass
+class Stage1Progress:
+    """What stage 1 has done so far (saved in checkpoints)."""
+
+    updates: int = 0
+    losses: list[float] = field(default_factory=list)
+    """Mean TD loss of each check interval."""
+    agreements: list[float] = field(default_factory=list)
+    """Greedy/demo action agreement on held-out demos at each check."""
+    stop_reason: str = ""
+    done: bool = False
+
+
+def split_demos(demos: TensorDictBase, holdout_fraction: float,
+                seed: int) -> tuple[TensorDictBase, TensorDictBase]:
+    """(train, held-out) parts of the demos, by a seeded permutation."""
+    gen = torch.Generator().manual_seed(seed)
+    perm = torch.randperm(len(demos), generator=gen)
+    n_hold = max(1, int(round(holdout_fraction * len(demos))))
+    return demos[perm[n_hold:]], demos[perm[:n_hold]]
+
+
+@torch.no_grad()
+def agreement(qnet: torch.nn.Module, held_out: TensorDictBase, chunk: int = 256) -> float:
+    """Share of held-out demo transitions where the greedy action equals the demo's."""
+    hits = 0
+    for start in range(0, len(held_out), chunk):
+        part = held_out[start:start + chunk]
+        hits += int((qnet(part["pixels"]).argmax(-1) == part["action"]).sum())
+    return hits / len(held_out)
+
+
+def stop_reason(cfg: Stage1Config, progress: Stage1Progress) -> str:
+    """Why stage 1 should stop now ('' to go on), per ``cfg.criterion``."""
+    if progress.updates >= cfg.max_updates:
+        return f"max_updates ({cfg.max_updates})"
+    if cfg.criterion == "max_updates":
+        return ""
+    agreed = bool(progress.agreements) and progress.agreements[-1] >= cfg.agreement
+    flat = False
+    k = cfg.plateau_checks
+    if len(progress.losses) > k:
+        before, now = progress.losses[-k - 1], progress.losses[-1]
+        flat = (before - now) / max(abs(before), 1e-8) < cfg.plateau_tol
+    if agreed and cfg.criterion in ("agreement", "agreement_or_plateau"):
+        return f"agreement {progress.agreements[-1]:.3f} >= {cfg.agreement}"
+    if flat and cfg.criterion in ("plateau", "agreement_or_plateau"):
+        return f"loss plateau over {k} checks (< {cfg.plateau_tol:.0%} better)"
+    return ""

@@ -1,0 +1,38 @@
+"""Shared test helpers: tiny training configs and prior knowledge made on the spot."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from memrl.data.transitions import to_transitions
+from memrl.envs.torchrl_env import make_env, unwrap
+from memrl.envs.vehicles import IDLE
+from memrl.modules.policy import DrivingPolicy, PolicyModule
+
+TINY = [
+    "+experiment=smoke", "total_frames=null", "total_episodes=3", "env.duration=30",
+    "agent.warmup_frames=20", "agent.batch_size=8", "agent.train_every=4", "log_every=5",
+    "buffer.capacity=400", "checkpoint_every=1", "progress=false", "logger=none",
+    "mode.stage1.max_updates=12", "mode.stage1.check_every=4",
+]
+"""Overrides that make a training run take seconds."""
+
+
+class KeepGoing(DrivingPolicy):
+    """Keeps speed and curvature: a stand-in demonstrator for plumbing tests."""
+
+    def act(self, env, pixels) -> int:
+        return IDLE
+
+
+def make_demos(n: int, seed: int = 0, duration: int = 30) -> TensorDictBase:
+    """``n`` demo transitions recorded through the real TorchRL pipeline."""
+    env = make_env({"duration": duration, "vehicles_count": 0}, seed=seed)
+    policy = PolicyModule(KeepGoing(), unwrap(env))
+    parts, total = [], 0
+    while total < n:
+        td = env.rollout(duration, policy, break_when_any_done=True)
+        parts.append(to_transitions(td, is_demo=True))
+        total += len(td)
+    return torch.cat(parts)[:n]

@@ -1,0 +1,73 @@
+"""The double-DQN loss against a hand computation, and the learner's update mechanics."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from memrl.dqn.config import AgentConfig
+from memrl.dqn.learner import Learner
+
+
+def batch(n: int = 6, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    px = lambda: torch.randint(0, 256, (n, 4, 84, 84), dtype=torch.uint8, generator=g)  # noqa: E731
+    terminated = torch.tensor([True, False, False, True, False, False][:n]).unsqueeze(-1)
+    truncated = torch.tensor([False, True, False, False, False, False][:n]).unsqueeze(-1)
+    return TensorDict({
+        "pixels": px(), "action": torch.randint(0, 9, (n,), generator=g),
+        "is_demo": torch.zeros(n, dtype=torch.bool),
+        "next": {"pixels": px(), "reward": torch.randn(n, 1, generator=g),
+                 "terminated": terminated, "truncated": truncated,
+                 "done": terminated | truncated},
+    }, [n])
+
+
+def test_loss_equals_hand_computed_half_squared_double_dqn_error():
+    torch.manual_seed(0)
+    learner = Learner(AgentConfig(gamma=0.95, target_update_interval=10_000))
+    learner.update(batch(seed=1))  # online moves away from target: double DQN now matters
+    td = batch(seed=2)
+    with torch.no_grad():
+        q = learner.qnet(td["pixels"]).gather(-1, td["action"][:, None]).squeeze(-1)
+        next_online = learner.qnet(td["next", "pixels"])
+        a_star = next_online.argmax(-1, keepdim=True)
+        with learner.loss_module.target_value_network_params.to_module(learner.loss_module.value_network):
+            next_target = learner.qnet(td["next", "pixels"])
+        online_max = next_online.gather(-1, a_star).squeeze(-1)
+        bootstrap = next_target.gather(-1, a_star).squeeze(-1)
+        assert not torch.allclose(bootstrap, online_max)  # target and online differ
+        not_terminal = (~td["next", "terminated"]).float().squeeze(-1)  # truncated still bootstraps
+        target = td["next", "reward"].squeeze(-1) + 0.95 * not_terminal * bootstrap
+        expected = 0.5 * ((target - q) ** 2).mean()
+        got = learner.loss(td)
+    assert torch.allclose(got, expected, rtol=1e-5, atol=1e-6), (got, expected)
+
+
+def test_target_network_is_a_hard_copy_every_interval():
+    torch.manual_seed(0)
+    learner = Learner(AgentConfig(target_update_interval=3, lr=1e-3))
+    online = learner.loss_module.value_network_params
+    target = learner.loss_module.target_value_network_params
+
+    def same() -> bool:
+        return all(torch.equal(a, b) for a, b in zip(online.values(True, True),
+                                                     target.values(True, True), strict=True))
+
+    assert same()
+    learner.update(batch())
+    assert not same()
+    learner.update(batch())
+    learner.update(batch())
+    assert same()
+
+
+def test_actor_acts_with_the_updated_online_weights():
+    torch.manual_seed(0)
+    learner = Learner(AgentConfig(lr=1e-2))
+    td = batch()
+    before = learner.actor(td.clone())["action_value"].detach()
+    learner.update(td)
+    after = learner.actor(td.clone())["action_value"].detach()
+    assert not torch.allclose(before, after)
+    assert torch.allclose(after, learner.q_values(td["pixels"]))

@@ -1,0 +1,150 @@
+"""Training runs of every mode, mode B's stage switch, and resume equivalence."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+
+from memrl.dqn import checkpoint as ckpt
+from memrl.dqn.config import TrainConfigError
+from memrl.dqn.loop import Trainer
+from memrl.train import train
+from tests.helpers import TINY, make_demos
+
+
+@pytest.fixture(scope="module")
+def demos():
+    return make_demos(120)
+
+
+def rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("mode", [None, "A", "B"])
+def test_smoke_run_of_each_mode_writes_its_outputs(compose_cfg, tmp_path, demos, mode):
+    overrides = TINY + ([f"+mode={mode}"] if mode else [])
+    cfg = compose_cfg("train", overrides)
+    summary = train(cfg, tmp_path, demos=demos if mode else None)
+    assert summary.episodes == 3 and summary.updates > 0
+    for name in ("config.yaml", "episodes.csv", "updates.csv", "summary.json",
+                 "checkpoints/last/state.pt", "checkpoints/final.pt"):
+        assert (tmp_path / name).exists(), name
+    episodes = rows(tmp_path / "episodes.csv")
+    assert [int(r["episode"]) for r in episodes] == [1, 2, 3]
+    assert set(episodes[0]) >= {"return", "survival_steps", "collided", "reached_target",
+                                "epsilon", "stage"}
+    updates = rows(tmp_path / "updates.csv")
+    assert updates and all(float(r["loss"]) >= 0 for r in updates)
+    if mode == "A":  # exactly round(0.1 * 8) = 1 demo in every batch
+        assert {(r["demo_count_min"], r["demo_count_max"]) for r in updates} == {("1", "1")}
+    if mode == "B":
+        assert summary.stage == "B2" and summary.stage1["done"]
+        assert {r["stage"] for r in updates} == {"B1", "B2"}
+        assert (tmp_path / "checkpoints" / "stage1.pt").exists()
+    assert json.loads((tmp_path / "summary.json").read_text())["episodes"] == 3
+
+
+def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
+        compose_cfg, tmp_path, demos):
+    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=agreement",
+                                       "mode.stage1.agreement=0.0", "mode.stage1.max_updates=100"])
+    trainer = Trainer(cfg, tmp_path, demos)
+    trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
+    trainer.run_stage1()
+    # agreement >= 0 holds at the first check: stage 1 stops after check_every updates
+    assert trainer.stage1.updates == 4 and trainer.stage1.stop_reason.startswith("agreement")
+    assert trainer.counters.stage == "B2" and len(trainer.buffer) == 0
+    saved = torch.load(tmp_path / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
+    now = trainer.learner.loss_module.state_dict()
+    online = [k for k in saved if k.startswith("value_network_params")]
+    assert online and all(torch.equal(saved[k], now[k]) for k in online)
+    for k in online:  # the target network starts from the stage-1 online weights too
+        assert torch.equal(now["target_" + k], saved[k])
+    assert float(trainer.explore.eps) == pytest.approx(cfg.mode.stage2.eps_start)
+
+
+def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, demos):
+    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=max_updates",
+                                       "mode.stage1.max_updates=6"])
+    trainer = Trainer(cfg, tmp_path, demos)
+    trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
+    trainer.run_stage1()
+    assert trainer.stage1.updates == 6 and "max_updates" in trainer.stage1.stop_reason
+
+
+class Killed(RuntimeError):
+    pass
+
+
+@pytest.mark.parametrize("mode", [None, "A"])
+def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_path, demos,
+                                                            monkeypatch, mode):
+    extra = ["total_episodes=6", "checkpoint_every=2"] + ([f"+mode={mode}"] if mode else [])
+    cfg = compose_cfg("train", TINY + extra)
+    full = train(cfg, tmp_path / "full", demos=demos)
+
+    # Kill after episode 5: episodes 5 was done after the checkpoint at 4 and is redone.
+    original = Trainer.run_episode
+
+    def dying(self):
+        if self.counters.episodes == 5:
+            raise Killed("simulated kill")
+        original(self)
+
+    monkeypatch.setattr(Trainer, "run_episode", dying)
+    with pytest.raises(Killed):
+        train(cfg, tmp_path / "cut", demos=demos)
+    monkeypatch.setattr(Trainer, "run_episode", original)
+    assert len(rows(tmp_path / "cut" / "episodes.csv")) == 5
+    resumed_cfg = compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"])
+    resumed = train(resumed_cfg, demos=demos)
+
+    assert resumed.resumed_from_episode == 4
+    for key in ("frames", "episodes", "updates", "stage"):
+        assert getattr(resumed, key) == getattr(full, key), key
+    assert rows(tmp_path / "cut" / "episodes.csv") == rows(tmp_path / "full" / "episodes.csv")
+    assert rows(tmp_path / "cut" / "updates.csv")[-1]["loss"] == rows(
+        tmp_path / "full" / "updates.csv")[-1]["loss"]
+    a = torch.load(tmp_path / "full" / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    b = torch.load(tmp_path / "cut" / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    sa = ckpt.load_state(tmp_path / "full" / "checkpoints" / "last")
+    sb = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")
+    assert sa["counters"] == sb["counters"]
+    ta, tb = Trainer(cfg, tmp_path / "x", demos), Trainer(cfg, tmp_path / "y", demos)
+    ta.resume(tmp_path / "full")
+    tb.resume(tmp_path / "cut")
+    agent_a = ta.buffer.online_buffer if mode == "A" else ta.buffer
+    agent_b = tb.buffer.online_buffer if mode == "A" else tb.buffer
+    assert len(agent_a) == len(agent_b) > 0
+    idx = torch.arange(len(agent_a))
+    assert (agent_a.storage.get(idx) == agent_b.storage.get(idx)).all()
+
+
+def test_resume_refuses_a_checkpoint_from_another_config(compose_cfg, tmp_path):
+    cfg = compose_cfg("train", TINY + ["total_episodes=1"])
+    train(cfg, tmp_path)
+    other = compose_cfg("train", TINY + ["total_episodes=2", "agent.lr=0.1", f"resume={tmp_path}"])
+    with pytest.raises(ckpt.CheckpointError, match="agent.lr"):
+        train(other)
+
+
+def test_resume_needs_a_complete_checkpoint(compose_cfg, tmp_path):
+    (tmp_path / "checkpoints" / "last").mkdir(parents=True)
+    cfg = compose_cfg("train", TINY + [f"resume={tmp_path}"])
+    with pytest.raises(ckpt.CheckpointError, match="no complete checkpoint"):
+        train(cfg)
+
+
+@pytest.mark.parametrize(("override", "key"), [("agent.gamma=1.5", "agent.gamma"),
+                                               ("mode.sampling=random", "mode.sampling"),
+                                               ("agent.eps_start=0.01", "agent.eps_start")])
+def test_bad_training_values_name_the_key(compose_cfg, tmp_path, override, key):
+    cfg = compose_cfg("train", TINY + [override])
+    with pytest.raises(TrainConfigError, match=key.replace(".", r"\.")):
+        train(cfg, tmp_path)
