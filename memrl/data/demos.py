@@ -127,6 +127,10 @@ def _check_layout(td: TensorDictBase, spec: dict[str, tuple[list[int], str]]) ->
 
 
 # ------------------------------------------------------------------------------- save
+def _write_metadata(folder: Path, meta: Mapping[str, Any]) -> None:
+    (folder / METADATA_FILE).write_text(json.dumps(meta, indent=1, default=str))
+
+
 def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.PathLike,
                metadata: Mapping[str, Any], *, overwrite: bool = False) -> Path:
     """Write transitions and ``metadata.json`` atomically (temporary folder, then rename).
@@ -177,7 +181,7 @@ def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.Pat
             out[start:start + chunk.shape[0]] = chunk
             start += chunk.shape[0]
         del out  # unmap before the rename
-        (tmp / METADATA_FILE).write_text(json.dumps(meta, indent=1, default=str))
+        _write_metadata(tmp, meta)  # last: a folder without it is never taken for a dataset
         if path.exists():  # overwrite: move the old one aside, then swap
             old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
             path.rename(old)

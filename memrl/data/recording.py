@@ -8,17 +8,19 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tensordict import TensorDict
 from tqdm import tqdm
 
 from memrl.data.demos import EnvCfg, save_demos
 from memrl.data.transitions import to_transitions
 from memrl.envs.config import LaneChangeConfig
+from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
 from memrl.modules.policy import DrivingPolicy, PolicyModule
 
@@ -127,6 +129,35 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
         if callable(close):
             close()
     return rec
+
+
+def drive_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, seeds: Iterable[int],
+                   frame_stack: int = 4) -> list[EpisodeStats]:
+    """Run a policy on the gym env directly: same episodes as :func:`record_episodes` for the
+    same seeds, without the TorchRL pipeline (about 6x faster), for measuring policies that
+    read the world state. ``pixels`` are still passed as a stack of the last frames.
+    """
+    # Hand-written: TorchRL's rollout costs more than the whole env step here; the frame stack
+    # matches CatFrames (padded with the first frame after a reset).
+    env = LaneChangeEnv(config=env_config_values(env_cfg))
+    out = []
+    try:
+        for seed in seeds:
+            obs, _ = env.reset(seed=seed)
+            frames = np.repeat(obs, frame_stack, axis=0)
+            policy.reset(env)
+            total, done, info = 0.0, False, {}
+            while not done:
+                obs, reward, terminated, truncated, info = env.step(policy.act(env, frames))
+                frames = np.concatenate([frames[1:], obs])
+                total += float(reward)
+                done = terminated or truncated
+            out.append(EpisodeStats(seed=int(seed), steps=env.steps, episode_return=total,
+                                    collided=bool(info["collided"]),
+                                    reached_target=bool(info["reached_target"])))
+    finally:
+        env.close()
+    return out
 
 
 def env_config_values(env_cfg: EnvCfg) -> dict[str, Any]:

@@ -1,0 +1,283 @@
+"""Demo datasets: exact round trip, atomic writes, every corruption case, storage, example, CLI."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage
+
+from memrl.data import demos as demos_mod
+from memrl.data.demos import (
+    FORMAT_VERSION,
+    DemoDatasetError,
+    dataset_bytes,
+    demos_into_storage,
+    ensure_example_demos,
+    env_config_hash,
+    example_demos_path,
+    load_demos,
+    read_metadata,
+    save_demos,
+    transition_spec,
+)
+from memrl.data.recording import record_to_dataset
+from memrl.data.transitions import TRANSITION_KEYS
+from memrl.envs.torchrl_env import make_env
+from memrl.modules.scripted import ScriptedDriver
+from memrl.record import record
+
+SHORT = {"duration": 40, "vehicles_count": [0, 5]}  # short episodes keep the files small
+BYTES_PER_TRANSITION = 2 * 4 * 84 * 84 + 8 + 1 + 4 + 3  # pixels, next pixels, action, flags
+
+
+def leaves(td: TensorDict) -> dict:
+    return {k: td.get(k) for k in td.keys(include_nested=True, leaves_only=True)}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> tuple[Path, TensorDict]:
+    """Two short scripted episodes recorded through the TorchRL env (all kept)."""
+    path = tmp_path_factory.mktemp("demos") / "two"
+    saved, rec = record_to_dataset(SHORT, ScriptedDriver(), path, episodes=2, seed=5,
+                                   keep_stable=False, source="scripted")
+    assert saved == path
+    return path, torch.cat(rec.transitions)
+
+
+@pytest.fixture
+def copy(dataset, tmp_path) -> Path:
+    """A private copy of the dataset to damage."""
+    return Path(shutil.copytree(dataset[0], tmp_path / "copy"))
+
+
+def test_layout_matches_the_shared_transition_keys():
+    names = {tuple(k.split("/")) if "/" in k else k for k in transition_spec(None)}
+    assert names == set(TRANSITION_KEYS)
+
+
+def test_round_trip_is_exact_and_memory_mapped(dataset):
+    path, original = dataset
+    loaded = load_demos(path, env_cfg=SHORT)
+    assert loaded.batch_size == original.batch_size == (80,)
+    a, b = leaves(original), leaves(loaded)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert a[key].dtype == b[key].dtype and torch.equal(a[key], b[key]), key
+    assert type(loaded["pixels"]).__name__ == "MemoryMappedTensor"
+    assert loaded["is_demo"].all() and loaded["pixels"].dtype == torch.uint8
+    meta = read_metadata(path)
+    assert meta["format_version"] == FORMAT_VERSION and meta["source"] == "scripted"
+    assert meta["counts"] == {"episodes": 2, "episodes_recorded": 2, "transitions": 80}
+    assert meta["env_config_hash"] == env_config_hash(SHORT) and meta["seed"] == 5
+    assert meta["spec"]["pixels"] == {"shape": [4, 84, 84], "dtype": "uint8"}
+    assert {"created", "stats", "episodes", "env_config"} <= meta.keys()
+
+
+def test_recorded_pixels_are_exactly_what_the_env_gives(dataset):
+    path, _ = dataset
+    td = load_demos(path)
+    env = make_env(SHORT)
+    first = env.reset(seed=5)
+    assert torch.equal(td["pixels"][0], first["pixels"])
+    # within an episode, next pixels are the following step's pixels
+    assert torch.equal(td["next", "pixels"][:39], td["pixels"][1:40])
+
+
+def test_size_on_disk_is_the_raw_transitions(dataset):
+    path, _ = dataset
+    size = dataset_bytes(path)
+    assert 80 * BYTES_PER_TRANSITION <= size <= 80 * BYTES_PER_TRANSITION + 20_000  # + JSON files
+
+
+def test_save_refuses_bad_layouts_and_existing_folders(dataset, tmp_path):
+    path, original = dataset
+    meta = {"env_config": SHORT}
+    with pytest.raises(ValueError, match="keys"):
+        save_demos(original.exclude("is_demo"), tmp_path / "a", meta)
+    bad = original.clone()
+    bad["action"] = bad["action"].to(torch.int32)
+    with pytest.raises(ValueError, match="action"):
+        save_demos(bad, tmp_path / "b", meta)
+    with pytest.raises(ValueError, match="env_config"):
+        save_demos(original, tmp_path / "c", {})
+    with pytest.raises(FileExistsError):
+        save_demos(original, path, meta)
+
+
+def killed(*args, **kwargs):
+    raise KeyboardInterrupt  # as if the recording were stopped before the metadata is written
+
+
+def test_interrupted_save_leaves_nothing_that_looks_valid(dataset, tmp_path, monkeypatch):
+    _, original = dataset
+    target = tmp_path / "new"
+    monkeypatch.setattr(demos_mod, "_write_metadata", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_demos(original, target, {"env_config": SHORT})
+    assert not target.exists() and list(tmp_path.iterdir()) == []  # temporary folder removed
+
+
+def test_killed_save_leaves_only_a_hidden_unloadable_folder(dataset, tmp_path, monkeypatch):
+    _, original = dataset
+    monkeypatch.setattr(demos_mod, "_write_metadata", killed)
+    monkeypatch.setattr(demos_mod.shutil, "rmtree", lambda *a, **k: None)  # no clean-up: a kill
+    with pytest.raises(KeyboardInterrupt):
+        save_demos(original, tmp_path / "new", {"env_config": SHORT})
+    monkeypatch.undo()
+    (left,) = list(tmp_path.iterdir())
+    assert left.name.startswith(".new.tmp-") and (left / "transitions").is_dir()
+    with pytest.raises(DemoDatasetError, match="missing"):
+        load_demos(left)
+
+
+def test_interrupted_overwrite_keeps_the_old_dataset(copy, dataset, monkeypatch):
+    _, original = dataset
+    monkeypatch.setattr(demos_mod, "_write_metadata", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_demos(original[:10], copy, {"env_config": SHORT}, overwrite=True)
+    monkeypatch.undo()
+    assert load_demos(copy).shape == (80,)
+
+
+def test_overwrite_swaps_in_the_new_dataset(copy, dataset):
+    _, original = dataset
+    save_demos(original[:10], copy, {"env_config": SHORT, "source": "again"}, overwrite=True)
+    assert load_demos(copy).shape == (10,) and read_metadata(copy)["source"] == "again"
+    assert [p.name for p in copy.parent.iterdir()] == ["copy"]  # no leftovers
+
+
+def _edit_json(file: Path, edit) -> None:
+    data = json.loads(file.read_text())
+    edit(data)
+    file.write_text(json.dumps(data))
+
+
+CORRUPTIONS = {
+    "truncated file": (lambda p: open(p / "transitions/next/pixels.memmap", "r+b").truncate(1000),
+                       "transitions/next/pixels.memmap", "truncated"),
+    "missing tensor file": (lambda p: (p / "transitions/action.memmap").unlink(),
+                            "transitions/action.memmap", "missing"),
+    "altered shape": (lambda p: _edit_json(p / "transitions/meta.json",
+                                           lambda d: d["pixels"].update(shape=[80, 4, 84, 83])),
+                      "transitions/pixels.memmap", r"\[80, 4, 84, 83\]"),
+    "wrong dtype": (lambda p: _edit_json(p / "transitions/meta.json",
+                                         lambda d: d["action"].update(dtype="torch.int32")),
+                    "transitions/action.memmap", "torch.int32"),
+    "missing metadata": (lambda p: (p / "metadata.json").unlink(), "metadata.json", "missing"),
+    "unreadable metadata": (lambda p: (p / "metadata.json").write_text("{not json"),
+                            "metadata.json", "JSON"),
+    "format version": (lambda p: _edit_json(p / "metadata.json", lambda d: d.update(format_version=2)),
+                       "metadata.json", "format version 2"),
+    "edited env config": (lambda p: _edit_json(p / "metadata.json",
+                                               lambda d: d["env_config"].update(lane_width=3.5)),
+                          "metadata.json", "does not match"),
+    "wrong count": (lambda p: _edit_json(p / "metadata.json",
+                                         lambda d: d["counts"].update(transitions=81)),
+                    "transitions/", r"expected \[81"),
+    "not a dataset": (lambda p: shutil.rmtree(p), "copy", "no dataset folder"),
+}
+
+
+@pytest.mark.parametrize("case", list(CORRUPTIONS))
+def test_each_corruption_gives_a_clear_error_naming_the_file(copy, case):
+    damage, file, problem = CORRUPTIONS[case]
+    damage(copy)
+    with pytest.raises(DemoDatasetError, match=problem) as err:
+        load_demos(copy)
+    assert file in str(err.value)
+
+
+def test_env_mismatch_names_the_differing_keys(dataset):
+    path, _ = dataset
+    with pytest.raises(DemoDatasetError, match="hash mismatch") as err:
+        load_demos(path, env_cfg={**SHORT, "lane_width": 3.5, "bev": {"longitudinal_scale": 0.5}})
+    message = str(err.value)
+    assert "metadata.json" in message and "lane_width" in message and "bev" in message
+    # episode-drawing keys do not matter: demos made from other starts still fit
+    load_demos(path, env_cfg={**SHORT, "initial_lane": "non_goal", "vehicles_count": 5})
+
+
+def test_env_hash_is_stable_across_spellings():
+    defaults = env_config_hash(None)
+    assert env_config_hash({}) == defaults
+    assert env_config_hash({"lane_width": 4}) == env_config_hash({"lane_width": 4.0}) == defaults
+    assert env_config_hash(OmegaConf.create({"lanes_count": 2})) == defaults
+    assert env_config_hash({"opponent": "constant", "initial_lane": "non_goal"}) == defaults
+    assert env_config_hash({"reward": {"collision": -10.0}}) != defaults
+    assert env_config_hash({"duration": 100}) != defaults
+    assert len(defaults) == 64
+
+
+@pytest.mark.parametrize("kind", ["tensor", "memmap"])
+def test_demos_fill_a_torchrl_storage_once(dataset, tmp_path, kind):
+    path, original = dataset
+    td = load_demos(path)
+    storage = (LazyTensorStorage(100) if kind == "tensor"
+               else LazyMemmapStorage(100, scratch_dir=tmp_path / "scratch"))
+    rows = demos_into_storage(td, storage, chunk=32)
+    assert rows == slice(0, 80) and len(storage) == 80
+    stored = storage.get(torch.arange(80))
+    for key, value in leaves(original).items():
+        assert torch.equal(stored.get(key), value), key
+    stored_pixels = storage._storage["pixels"]
+    assert stored_pixels.untyped_storage().data_ptr() != td["pixels"].untyped_storage().data_ptr()
+    with pytest.raises(ValueError, match="do not fit"):
+        demos_into_storage(td, LazyTensorStorage(50))
+
+
+def test_example_dataset_is_recorded_once_then_reused(tmp_path, monkeypatch):
+    env = {"vehicles_count": 0, "duration": 60, "initial_lane": "non_goal"}
+    path = ensure_example_demos(env, tmp_path, episodes=1)
+    assert path == example_demos_path(env, tmp_path) and path.parent == tmp_path
+    assert load_demos(path, env).shape == (60,)
+    assert read_metadata(path)["stats"]["kept"]["goal"] == 1
+
+    def no_recording(*args, **kwargs):
+        raise AssertionError("the cached dataset should have been reused")
+
+    import memrl.data.recording as recording
+    monkeypatch.setattr(recording, "record_to_dataset", no_recording)
+    assert ensure_example_demos(env, tmp_path, episodes=1) == path
+    monkeypatch.undo()
+    (path / "metadata.json").unlink()  # damaged cache: recorded again
+    assert ensure_example_demos(env, tmp_path, episodes=1) == path
+    assert load_demos(path, env).shape == (60,)
+
+
+def test_record_command_prints_and_saves(compose_cfg, tmp_path, capsys):
+    out = tmp_path / "rec"
+    cfg = compose_cfg("record", ["episodes=2", "env.duration=40", "env.vehicles_count=[0,5]",
+                                 "keep=all", f"out={out}", "progress=false"])
+    summary = record(cfg)
+    assert summary.path == out and summary.kept["transitions"] == 80 and summary.bytes > 0
+    printed = capsys.readouterr().out
+    assert "kept (all) 2 episodes, 80 transitions" in printed and "survival" in printed
+    assert load_demos(out, cfg.env)["action"].shape == (80,)
+    assert read_metadata(out)["policy"]["_target_"] == "memrl.modules.scripted.ScriptedDriver"
+
+
+def test_record_stable_only_drops_unfinished_episodes(compose_cfg, tmp_path):
+    # 10 steps are too few to reach the target lane from a non-goal start: nothing is kept
+    cfg = compose_cfg("record", ["episodes=1", "env.duration=10", "env.initial_lane=non_goal",
+                                 f"out={tmp_path / 'none'}", "progress=false"])
+    summary = record(cfg)
+    assert summary.path is None and summary.recorded["episodes"] == 1 and summary.kept["episodes"] == 0
+    assert not (tmp_path / "none").exists()
+
+
+def test_record_example_and_bad_options(compose_cfg, tmp_path):
+    base = ["episodes=1", "env.duration=60", "env.vehicles_count=0", "env.initial_lane=non_goal",
+            f"paths.data_dir={tmp_path}", "progress=false"]
+    summary = record(compose_cfg("record", [*base, "example=true"]))
+    assert summary.path == example_demos_path(compose_cfg("record", base).env, tmp_path)
+    assert summary.kept["goal"] == 1
+    with pytest.raises(ValueError, match="keep"):
+        record(compose_cfg("record", [*base, "keep=some"]))
+    with pytest.raises(ValueError, match="example"):
+        record(compose_cfg("record", [*base, "example=true", "demos=human"]))
