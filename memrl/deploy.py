@@ -20,6 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from memrl.cli import run_hydra
 from memrl.configs import register_configs
+from memrl.control.baseline import simulator_summary
 from memrl.control.config import DeployConfig, check_deploy_config
 from memrl.control.episode import EpisodeRecord, run_episode
 from memrl.control.metrics import episode_metrics, summarize
@@ -79,6 +80,7 @@ def deploy(cfg: DictConfig, out_dir: Path, policy: DrivingPolicy | None = None) 
 
     Episode k uses env seed ``seed + k`` and sensor seed ``[seed, k]``. Writes ``deploy.json``
     (aggregate and per-episode metrics, config) and ``deploy.png`` (episode ``plot_episode``).
+    With ``compare_simulator``, the same seeds are replayed in the plain simulator (``sim_*``).
 
     Args:
         cfg: the composed ``deploy`` config (keys ``env`` and ``deploy``).
@@ -99,9 +101,11 @@ def deploy(cfg: DictConfig, out_dir: Path, policy: DrivingPolicy | None = None) 
                      "%.4f rad/m", k + 1, dcfg.episodes, rec.seed,
                      "success" if m["success"] else ("collision" if rec.collided else "missed"),
                      m["overshoot"], m["speed_tracking_rms"], m["curvature_tracking_rms"])
+        metrics = summarize(records)
+        if dcfg.compare_simulator:
+            metrics.update(simulator_summary(env, policy, [r.seed for r in records]))
     finally:
         env.close()
-    metrics = summarize(records)
     episodes = [_json_safe(episode_metrics(r)) for r in records]
     out_dir.mkdir(parents=True, exist_ok=True)
     json_path = out_dir / "deploy.json"

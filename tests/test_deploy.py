@@ -28,6 +28,7 @@ def test_scripted_driver_changes_lanes_without_collision_and_bounded_overshoot(c
     assert m["overshoot_max"] < 0.5  # m past the target lane centre
     assert m["final_offset_abs_mean"] < 0.3  # m: it settles on the target lane centre
     assert m["speed_tracking_rms"] < 0.5 and m["curvature_tracking_rms"] < 0.015
+    assert m["sim_collisions"] == 0 and m["sim_success_rate"] == 1.0  # the plain simulator
     for q in ("position", "lateral", "speed", "yaw_rate", "curvature"):
         assert m[f"{q}_est_rms"] < 0.7 * m[f"{q}_raw_rms"], q
     data = json.loads(summary.json.read_text())

@@ -174,6 +174,9 @@ class DeployConfig:
     """PID, sensor and filter rate [Hz]; the agent decides every env ``dt`` (0.1 s)."""
     plot_episode: int = 0
     """Episode drawn in ``deploy.png``."""
+    compare_simulator: bool = True
+    """Also run the policy on the same seeds in the plain simulator (instant commands, true
+    state) and report its success, collisions and overshoot as ``sim_*`` metrics."""
     vehicle: VehicleModelConfig = field(default_factory=VehicleModelConfig)
     sensors: SensorConfig = field(default_factory=SensorConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)

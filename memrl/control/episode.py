@@ -105,7 +105,7 @@ class EpisodeRecord:
     """Action index per env step."""
 
 
-def _gray(img: np.ndarray) -> np.ndarray:
+def gray(img: np.ndarray) -> np.ndarray:
     """``[H, W]`` grayscale of a ``[C, H, W]`` view: as drawn (C=1) or TorchRL's GrayScale (C=3)."""
     if img.shape[0] == 1:
         return img[0]
@@ -133,7 +133,7 @@ def run_episode(env: LaneChangeEnv, policy: DrivingPolicy, car: TrackedCar, seed
         policy.reset(env)
     while True:
         with believed_state(env, estimate, commands):
-            frame = _gray(env.observe_from(env.vehicle, env.target_lane))
+            frame = gray(env.observe_from(env.vehicle, env.target_lane))
             frames.extend([frame] * (frame_stack if not frames else 1))
             action = int(policy.act(env, np.stack(frames)))
         commands.apply_action(action)

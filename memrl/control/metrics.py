@@ -58,12 +58,18 @@ def changes_lane(rec: EpisodeRecord) -> bool:
     return abs(rec.start_y - rec.target_y) > 0.5
 
 
+def overshoot_of(y: np.ndarray, start_y: float, target_y: float) -> float:
+    """Largest excursion of the lateral positions ``y`` beyond ``target_y`` in the direction
+    from ``start_y`` [m]; NaN when the start is in the target lane (no change to overshoot)."""
+    if abs(start_y - target_y) <= 0.5:
+        return math.nan
+    direction = math.copysign(1.0, target_y - start_y)
+    return max(0.0, float(np.max(direction * (np.asarray(y) - target_y))))
+
+
 def overshoot(rec: EpisodeRecord) -> float:
     """Largest excursion beyond the target lane's centre in the direction of the change [m]."""
-    if not changes_lane(rec):
-        return math.nan
-    direction = math.copysign(1.0, rec.target_y - rec.start_y)
-    return max(0.0, float(np.max(direction * (rec.trace["y"] - rec.target_y))))
+    return overshoot_of(rec.trace["y"], rec.start_y, rec.target_y)
 
 
 def episode_metrics(rec: EpisodeRecord) -> dict[str, float | int | bool]:
