@@ -134,8 +134,7 @@ class KeyboardDriver(DrivingPolicy):
 
     # -------------------------------------------------------------------------- API
     def reset(self, env: LaneChangeEnv) -> None:
-        self.held.clear()
-        self.tapped.clear()
+        self.tapped.clear()  # held keys stay held: no new KEYDOWN comes for a key kept down
         self._waiting = self.wait_for_start
 
     def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:

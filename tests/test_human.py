@@ -1,0 +1,147 @@
+"""The keyboard recorder, headless: SDL's dummy video driver and synthetic key events."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from memrl.data.demos import load_demos
+from memrl.envs.torchrl_env import make_env, unwrap
+from memrl.envs.vehicles import IDLE, action_index
+from memrl.modules.human import KeyboardDriver, action_from_keys
+from memrl.modules.policy import PolicyModule
+from memrl.record import record
+
+
+@pytest.fixture
+def pg(monkeypatch):
+    """pygame on the dummy video driver; the display is closed afterwards."""
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    monkeypatch.setenv("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    import pygame
+
+    pygame.display.init()
+    pygame.event.clear()
+    yield pygame
+    pygame.display.quit()
+
+
+def press(pg, *keys: int) -> None:
+    for key in keys:
+        pg.event.post(pg.event.Event(pg.KEYDOWN, key=key))
+
+
+def release(pg, *keys: int) -> None:
+    for key in keys:
+        pg.event.post(pg.event.Event(pg.KEYUP, key=key))
+
+
+@pytest.mark.parametrize(
+    ("held", "signs"),
+    [((), (0, 0)), (("up",), (1, 0)), (("down",), (-1, 0)), (("left",), (0, -1)),
+     (("right",), (0, 1)), (("up", "left"), (1, -1)), (("up", "right"), (1, 1)),
+     (("down", "left"), (-1, -1)), (("down", "right"), (-1, 1)), (("up", "down"), (0, 0)),
+     (("left", "right", "up"), (1, 0))],
+)
+def test_arrow_keys_map_to_the_nine_actions(held, signs):
+    assert action_from_keys(set(held)) == action_index(*signs)
+
+
+def test_synthetic_key_presses_are_the_executed_actions(pg):
+    env = make_env({"vehicles_count": 0, "target_lane": 1}, seed=0, render_mode="rgb_array")
+    driver = KeyboardDriver(fps=0, wait_for_start=False)
+    module = PolicyModule(driver, unwrap(env))
+    td = env.reset()
+    car = unwrap(env).vehicle
+    script = [  # (events before the step, expected action)
+        (lambda: press(pg, pg.K_UP), action_index(1, 0)),
+        (lambda: None, action_index(1, 0)),  # still held
+        (lambda: (release(pg, pg.K_UP), press(pg, pg.K_RIGHT)), action_index(0, 1)),
+        (lambda: press(pg, pg.K_DOWN), action_index(-1, 1)),
+        (lambda: release(pg, pg.K_DOWN, pg.K_RIGHT), IDLE),
+        (lambda: (press(pg, pg.K_LEFT), release(pg, pg.K_LEFT)), action_index(0, -1)),  # a tap
+        (lambda: None, IDLE),  # the tap counted once
+        (lambda: press(pg, pg.K_a, pg.K_SPACE), IDLE),  # other keys do nothing
+    ]
+    taken = []
+    for events, expected in script:
+        events()
+        speed, curvature = car.speed, car.curvature
+        td = module(td)
+        taken.append(int(td["action"]))
+        td = env.step(td)
+        ds, dk = np.sign(round(car.speed - speed, 6)), np.sign(round(car.curvature - curvature, 6))
+        assert action_index(int(ds), int(dk)) == expected  # what the car actually did
+        td = td["next"]
+    assert taken == [e for _, e in script] == driver.executed
+    # the window shows the scene and, beside it, the agent's newest frame enlarged 4x
+    screen = pg.surfarray.array3d(pg.display.get_surface()).transpose(1, 0, 2)  # (H, W, 3)
+    scene_w = int(round(unwrap(env).cfg.scene.width * driver.scene_scale))
+    view = screen[10:10 + 336, 20 + scene_w:20 + scene_w + 336, 0]
+    assert view.std() > 5 and screen[10:700, 10:10 + scene_w].std() > 5
+    driver.close()
+
+
+def test_view_in_the_window_is_the_observation(pg):
+    env = make_env({"vehicles_count": 3}, seed=2, render_mode="rgb_array")
+    driver = KeyboardDriver(fps=0, wait_for_start=False, view_scale=3)
+    td = env.reset()
+    driver.act(unwrap(env), td["pixels"].numpy())
+    screen = pg.surfarray.array3d(pg.display.get_surface()).transpose(1, 0, 2)
+    x0 = 20 + int(round(unwrap(env).cfg.scene.width * driver.scene_scale))
+    view = screen[10:10 + 252:3, x0:x0 + 252:3, 0]
+    assert np.array_equal(view, td["pixels"][-1].numpy())
+    driver.close()
+
+
+def test_episode_waits_for_a_first_key_when_asked(pg):
+    env = make_env({"vehicles_count": 0}, seed=0, render_mode="rgb_array")
+    driver = KeyboardDriver(fps=0, wait_for_start=True)
+    td = env.reset()
+    driver.reset(unwrap(env))
+    press(pg, pg.K_DOWN)  # the key that starts the episode is also its first action
+    assert driver.act(unwrap(env), td["pixels"].numpy()) == action_index(-1, 0)
+    driver.close()
+
+
+def test_record_command_stores_the_keyboard_actions(pg, compose_cfg, tmp_path):
+    out = tmp_path / "human"
+    cfg = compose_cfg("record", ["demos=human", "demos.policy.fps=0", "demos.policy.wait_for_start=false",
+                                 "episodes=2", "keep=all", "env.vehicles_count=0", f"out={out}",
+                                 "progress=false"])
+    press(pg, pg.K_RIGHT)  # held for the whole recording: the car turns into the right wall
+    summary = record(cfg)
+    assert summary.recorded["episodes"] == 2 and summary.recorded["survival"] == 0
+    td = load_demos(out, cfg.env)
+    assert torch.all(td["action"] == action_index(0, 1))
+    assert td["next", "terminated"][-1].item() and td.shape[0] == summary.kept["transitions"]
+
+
+def test_escape_stops_and_drops_the_unfinished_episode(pg, compose_cfg, tmp_path):
+    cfg = compose_cfg("record", ["demos=human", "demos.policy.fps=0", "demos.policy.wait_for_start=false",
+                                 "episodes=3", "keep=all", f"out={tmp_path / 'none'}", "progress=false"])
+    press(pg, pg.K_UP, pg.K_ESCAPE)
+    summary = record(cfg)
+    assert summary.stopped_early and summary.path is None and summary.recorded["episodes"] == 0
+    assert not (tmp_path / "none").exists()
+
+
+def test_steps_are_paced_at_the_configured_rate(pg, monkeypatch):
+    ticks = []
+
+    class FakeClock:  # records the pacing instead of sleeping (no timed assertions)
+        def tick(self, fps: float = 0) -> int:
+            ticks.append(fps)
+            return 0
+
+    monkeypatch.setattr(pg.time, "Clock", FakeClock)
+    env = make_env({"vehicles_count": 0}, seed=0, render_mode="rgb_array")
+    driver = KeyboardDriver(fps=25, wait_for_start=False)
+    td = env.reset()
+    for _ in range(3):
+        driver.act(unwrap(env), td["pixels"].numpy())
+    assert ticks == [25, 25, 25]
+    driver.close()
+    with pytest.raises(ValueError, match="fps"):
+        KeyboardDriver(fps=-1)
