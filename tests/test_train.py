@@ -148,3 +148,20 @@ def test_bad_training_values_name_the_key(compose_cfg, tmp_path, override, key):
     cfg = compose_cfg("train", TINY + [override])
     with pytest.raises(TrainConfigError, match=key.replace(".", r"\.")):
         train(cfg, tmp_path)
+
+
+def test_finished_run_loads_as_a_greedy_policy(compose_cfg, tmp_path):
+    from memrl.checkpoint import load_policy, load_qnet
+    from memrl.envs.torchrl_env import make_env, unwrap
+
+    cfg = compose_cfg("train", TINY + ["total_episodes=1"])
+    train(cfg, tmp_path)
+    net, env_cfg = load_qnet(tmp_path)
+    assert env_cfg["duration"] == 30
+    policy = load_policy(str(tmp_path))
+    env = make_env(env_cfg, seed=0)
+    pixels = env.reset()["pixels"]
+    assert policy.act(unwrap(env), pixels.numpy()) == int(net(pixels).argmax())
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ckpt.CheckpointError, match="bad.pt"):
+        load_policy(str(tmp_path / "bad.pt"))

@@ -1,0 +1,53 @@
+"""The user's exact command lines, run as subprocesses into a temporary project root."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.helpers import TINY
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = [o for o in TINY if o != "+experiment=smoke"] + ["total_episodes=2"]
+
+
+def run(args: list[str], root: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "MEMRL_ROOT": str(root), "SDL_VIDEODRIVER": "dummy"}
+    return subprocess.run([sys.executable, "-m", "memrl.train", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=900)
+
+
+def job_dirs(root: Path) -> list[Path]:
+    sweeps = sorted((root / "outputs" / "train" / "multiruns").iterdir())
+    assert len(sweeps) == 1
+    return sorted(p for p in sweeps[0].iterdir() if p.is_dir() and p.name.isdigit())
+
+
+def test_verbatim_mode_b_three_seed_multirun(tmp_path):
+    proc = run(["+mode=B", "-m", "seed=0,1,2", "+experiment=smoke", *SMALL], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    jobs = job_dirs(tmp_path)
+    assert len(jobs) == 3
+    seeds = sorted(json.loads((j / "summary.json").read_text())["seed"] for j in jobs)
+    assert seeds == [0, 1, 2]
+    assert all(json.loads((j / "summary.json").read_text())["stage"] == "B2" for j in jobs)
+    assert not (ROOT / "multirun").exists() and not (tmp_path / "multirun").exists()
+
+
+def test_one_failing_job_does_not_stop_the_sweep(tmp_path):
+    proc = run(["-m", "agent.lr=0.001,-1.0", *SMALL], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    good, bad = job_dirs(tmp_path)
+    assert (good / "summary.json").exists()
+    assert "agent.lr" in (bad / "error.txt").read_text()
+
+
+def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
+    proc = run(["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,1", *SMALL],
+               tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    jobs = job_dirs(tmp_path)
+    assert len(jobs) == 2 and all((j / "summary.json").exists() for j in jobs)
