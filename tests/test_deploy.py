@@ -103,3 +103,11 @@ def test_checkpoint_policy_without_training_module_fails_clearly(compose_cfg, tm
     cfg = compose_cfg("deploy", ["deploy.policy=checkpoint", "deploy.checkpoint=nowhere.pt"])
     with pytest.raises(RuntimeError, match="training module"):
         deploy(cfg, tmp_path)
+
+
+@pytest.mark.slow
+def test_scripted_driver_default_deploy_run(compose_cfg, tmp_path):
+    """The default 20 episodes (0-5 other cars): every lane change succeeds, as in the simulator."""
+    m = deploy(compose_cfg("deploy"), tmp_path).metrics
+    assert m["episodes"] == 20 and m["collisions"] == 0 and m["lane_change_success_rate"] == 1.0
+    assert m["overshoot_max"] < 0.5 and m["sim_success_rate"] == 1.0
