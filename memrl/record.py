@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,7 @@ def record(cfg: DictConfig) -> RecordSummary:
     if int(cfg.episodes) < 1:
         raise ValueError(f"record 'episodes': need >= 1, got {cfg.episodes!r}")
     start = time.perf_counter()
+    started = datetime.now(UTC).replace(microsecond=0)
     stopped = False
     if cfg.example:
         if cfg.demos.source != "scripted":
@@ -60,7 +62,10 @@ def record(cfg: DictConfig) -> RecordSummary:
                              f"(demos=scripted), not demos={cfg.demos.source}")
         path: Path | None = ensure_example_demos(cfg.env, cfg.paths.data_dir, episodes=int(cfg.episodes),
                                                  seed=int(cfg.seed), overwrite=bool(cfg.overwrite))
-        stats = read_metadata(path)["stats"]  # type: ignore[arg-type]
+        meta = read_metadata(path)  # type: ignore[arg-type]
+        stats = meta["stats"]
+        made = datetime.fromisoformat(meta["created"])
+        print(f"example dataset {'recorded now' if made >= started else 'from the cache'}: {path}")
     else:
         policy = instantiate(cfg.demos.policy)
         path, rec = record_to_dataset(
