@@ -25,7 +25,14 @@ def _env(cfg: DictConfig) -> dict[str, Any]:
     return env_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
 
 
-BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env}
+def _opponents(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import env_speed
+
+    return env_speed.run_opponents(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
+BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env,
+                                                                 "opponents": _opponents}
 
 
 def machine() -> dict[str, Any]:

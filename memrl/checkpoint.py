@@ -25,6 +25,15 @@ def resolve(path: str | Path) -> Path:
                           "checkpoints/final.pt, or a final.pt file)")
 
 
+def save_qnet(path: str | Path, net: QNetwork, env_cfg: dict[str, Any],
+              extra: dict[str, Any] | None = None) -> Path:
+    """Write a network in the ``final.pt`` format (``qnet`` weights, ``env`` config, extras)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"qnet": net.state_dict(), "env": env_cfg, **(extra or {})}, path)
+    return path
+
+
 def load_qnet(path: str | Path) -> tuple[QNetwork, dict[str, Any]]:
     """The Q-network of a finished run and the env config it was trained with."""
     file = resolve(path)

@@ -39,3 +39,9 @@ def test_bench_env_measures_both_envs_and_writes_json(compose_cfg, tmp_path):
 def test_bench_rejects_unknown_benchmark(compose_cfg, tmp_path):
     with pytest.raises(ValueError, match="unknown benchmark"):
         bench(compose_cfg("bench", ["benchmarks=[nope]"]), tmp_path)
+
+
+def test_bench_opponents_times_learned_and_constant_traffic(compose_cfg, tmp_path):
+    cfg = compose_cfg("bench", ["benchmarks=[opponents]", "opponents.steps=10"])
+    res = bench(cfg, tmp_path)["opponents"]
+    assert res["learned_steps_per_s"] > 0 and res["constant_steps_per_s"] > 0

@@ -105,3 +105,31 @@ def run(steps: int = 1500, vehicles_count: int = 5, seed: int = 0, torchrl: bool
         res["ratio_torchrl"] = (res["memrl_torchrl_steps_per_s"]
                                 / res["highway_fast_torchrl_steps_per_s"])
     return res
+
+
+def run_opponents(steps: int = 1000, vehicles_count: int = 5, seed: int = 0) -> dict:
+    """TorchRL env steps/s with ``vehicles_count`` learned cars vs as many constant cars.
+
+    The learned cars' pool is one freshly initialised Table I network (weights do not change
+    the cost): each step renders every learned car's own view and runs one batched forward.
+    """
+    import tempfile
+
+    import torch
+
+    from memrl.checkpoint import save_qnet
+    from memrl.envs.torchrl_env import make_env
+    from memrl.modules.qnet import QNetwork
+
+    with tempfile.TemporaryDirectory() as tmp:
+        torch.manual_seed(seed)
+        pool = str(save_qnet(f"{tmp}/final.pt", QNetwork(), {}))
+        # Cars keep their count over the episode: no spawning, so both runs draw 5 cars.
+        base = {"vehicles_count": vehicles_count}
+        learned = {**base, "opponent": {"type": "learned", "pool": [pool]}}
+        res: dict[str, Any] = {"steps": steps, "vehicles_count": vehicles_count,
+                               "torch_threads": torch.get_num_threads()}
+        res["constant_steps_per_s"], _ = _time_torchrl(lambda: make_env(base), steps, seed)
+        res["learned_steps_per_s"], _ = _time_torchrl(lambda: make_env(learned), steps, seed)
+    res["ratio_learned_to_constant"] = res["learned_steps_per_s"] / res["constant_steps_per_s"]
+    return res

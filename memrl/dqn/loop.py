@@ -26,6 +26,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.envs.utils import step_mdp
 from tqdm import tqdm
 
+from memrl.checkpoint import load_qnet, save_qnet
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, demo_buffer
 from memrl.data.transitions import to_transitions
 from memrl.dqn import checkpoint as ckpt
@@ -90,6 +91,9 @@ class Trainer:
         torch.manual_seed(int(cfg.seed))
         np.random.seed(int(cfg.seed) % 2**32)
         self.env = make_env(cfg.env)
+        if cfg.self_play_every and self._learned_controller() is None:
+            raise ValueError("config 'self_play_every': snapshots join the learned cars' pool; "
+                             "it needs opponent=learned or opponent=mixed")
         self.learner = Learner(cfg.agent)
         self.counters = Counters(stage={"default": "default", "A": "A", "B": "B1"}[self.mode])
         self.stage1 = Stage1Progress()
@@ -159,6 +163,7 @@ class Trainer:
         self._recent = deque(state["recent"], maxlen=20)
         ckpt.set_rng_state(state["rng"])
         self.records.rewind(self.counters.episodes, self.counters.update_rows)
+        self._restore_pool()
         self.resumed_from = self.counters.episodes
         log.info("resumed %s at stage %s: %d episodes, %d frames, %d updates", where,
                  self.counters.stage, self.counters.episodes, self.counters.frames,
@@ -231,6 +236,30 @@ class Trainer:
         self._build_stage()
         log.info("stage 1 done (%s); stage 2 from %s", self.stage1.stop_reason, path)
 
+    # ------------------------------------------------------------------ self-play
+    def _learned_controller(self) -> Any | None:
+        from memrl.envs.torchrl_env import unwrap
+
+        opponents = unwrap(self.env)._opponents
+        return next((c for c in opponents.controllers if c.kind == "learned"), None) \
+            if opponents is not None else None
+
+    def _snapshot_to_pool(self) -> None:
+        """Add the current agent to the learned cars' pool (``self_play_every`` episodes)."""
+        path = self.out_dir / "pool" / f"episode_{self.counters.episodes:07d}.pt"
+        save_qnet(path, self.learner.qnet,
+                  OmegaConf.to_container(self.cfg.env, resolve=True))  # type: ignore[arg-type]
+        controller = self._learned_controller()
+        assert controller is not None  # checked at start
+        controller.add_network(load_qnet(path)[0])
+
+    def _restore_pool(self) -> None:
+        """After a resume: the snapshots taken up to the checkpoint rejoin the pool, in order."""
+        every = int(self.cfg.self_play_every or 0)
+        for n in range(every, self.counters.episodes + 1, every) if every else []:
+            path = self.out_dir / "pool" / f"episode_{n:07d}.pt"
+            self._learned_controller().add_network(load_qnet(path)[0])  # type: ignore[union-attr]
+
     def run_episode(self) -> None:
         """One episode of collection with interleaved updates."""
         cfg, c = self.cfg, self.counters
@@ -264,6 +293,9 @@ class Trainer:
                "stage": c.stage}
         self.records.episode(row)
         self._recent.append(row)
+        every = int(self.cfg.self_play_every or 0)
+        if every and c.episodes % every == 0:
+            self._snapshot_to_pool()
 
     # ------------------------------------------------------------------ driver
     def _budget_left(self) -> bool:
@@ -312,9 +344,8 @@ class Trainer:
             frames_per_s=(c.frames - self._frames0) / max(wall, 1e-9),
             learner_busy=self._update_time / max(wall, 1e-9),
             resumed_from_episode=self.resumed_from)
-        final = self.out_dir / "checkpoints" / "final.pt"
-        torch.save({"qnet": self.learner.qnet.state_dict(),
-                    "env": OmegaConf.to_container(self.cfg.env, resolve=True),
-                    "summary": dataclasses.asdict(summary)}, final)
+        save_qnet(self.out_dir / "checkpoints" / "final.pt", self.learner.qnet,
+                  OmegaConf.to_container(self.cfg.env, resolve=True),  # type: ignore[arg-type]
+                  {"summary": dataclasses.asdict(summary)})
         (self.out_dir / "summary.json").write_text(json.dumps(dataclasses.asdict(summary), indent=2))
         return summary

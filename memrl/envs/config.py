@@ -66,6 +66,22 @@ class RewardConfig:
 
 
 @dataclass
+class OpponentConfig:
+    """Who drives the other cars (Sec. IV-A: constant speed, or a copy of an earlier agent)."""
+
+    type: str = "constant"
+    """constant: straight at constant speed | learned: every car driven by a past agent |
+    mixed: each car learned with probability ``learned_fraction``, else constant."""
+    learned_fraction: float = 0.5
+    """mixed: probability that a car is driven by a past agent."""
+    pool: list[str] = field(default_factory=list)
+    """Past agents: run folders, ``final.pt`` files or glob patterns; each learned car draws
+    one per episode. Needed by learned and mixed."""
+    epsilon: float = 0.0
+    """Learned cars act epsilon-greedily with this epsilon (0: greedy)."""
+
+
+@dataclass
 class LaneChangeConfig:
     """Lane-change task of the paper (Sec. IV-A) on a straight multi-lane road."""
 
@@ -111,8 +127,8 @@ class LaneChangeConfig:
     length [m]; a car in the agent's lane keeps twice this gap from the agent."""
     spawn_attempts: int = 50
     """Rejection-sampling attempts per car; a car that finds no room is left out."""
-    opponent: str = "constant"
-    """Controller of the other cars: a name registered in ``memrl.envs.controllers``."""
+    opponent: OpponentConfig = field(default_factory=OpponentConfig)
+    """Who drives the other cars (a plain string is read as ``opponent.type``)."""
     lane_centre_tolerance: float = 0.3
     """|lateral offset| from a lane centre line at which the agent counts as centred [m]."""
     stopped_speed: float = 0.05
@@ -141,6 +157,8 @@ def _build(cls: type, values: dict[str, Any], prefix: str) -> Any:
     kwargs = {}
     for name, value in values.items():
         sub = names[name].default_factory  # type: ignore[misc]
+        if sub is OpponentConfig and isinstance(value, str):
+            value = {"type": value}  # shorthand: opponent=mixed
         if dataclasses.is_dataclass(sub) and isinstance(value, dict):
             value = _build(sub, value, f"{prefix}{name}.")  # type: ignore[arg-type]
         kwargs[name] = value
@@ -202,6 +220,13 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
         _check(isinstance(count, int) and count >= 0, "vehicles_count", f"need an int >= 0, got {count!r}")
     _check(cfg.spawn_ahead >= 0 and cfg.spawn_behind >= 0, "spawn_ahead", "spawn ranges must be >= 0")
     _check(cfg.lane_centre_tolerance >= 0, "lane_centre_tolerance", "must be >= 0")
+    opp = cfg.opponent
+    _check(opp.type in ("constant", "learned", "mixed"), "opponent.type",
+           f"expected constant, learned or mixed, got {opp.type!r}")
+    _check(0.0 <= opp.learned_fraction <= 1.0, "opponent.learned_fraction", "must be in [0, 1]")
+    _check(0.0 <= opp.epsilon <= 1.0, "opponent.epsilon", "must be in [0, 1]")
+    _check(opp.type == "constant" or len(opp.pool) > 0, "opponent.pool",
+           f"opponent.type={opp.type} needs a pool of past agents (run folders or final.pt files)")
     for name in ("bev", "scene"):
         sub = getattr(cfg, name)
         for key in ("width", "height"):

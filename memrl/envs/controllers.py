@@ -1,4 +1,4 @@
-"""Controllers of the other cars.
+"""Controllers of the other cars (``opponent`` key of the env config).
 
 A controller drives a group of cars with the same 9 actions as the agent, deciding for all of
 its cars at once (one batched call per step), so that a controller backed by a neural network
@@ -8,11 +8,13 @@ its cars at once (one batched call per step), so that a controller backed by a n
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from memrl.envs.config import OpponentConfig
 from memrl.envs.vehicles import IDLE, CurvatureVehicle
 
 if TYPE_CHECKING:
@@ -41,22 +43,29 @@ class ConstantSpeedController(CarController):
         return np.full(len(cars), IDLE, dtype=np.int64)
 
 
-CONTROLLERS: dict[str, Callable[[], CarController]] = {"constant": ConstantSpeedController}
-"""Registry of controllers the env can build by name (``opponent`` key of the env config)."""
+@dataclass
+class Opponents:
+    """The controllers of an episode's other cars and the chance of each car to get each."""
+
+    controllers: list[CarController]
+    weights: list[float]
+
+    def assign(self, rng: np.random.Generator, n: int) -> list[CarController]:
+        """A controller for each of ``n`` cars (drawn with the env's generator)."""
+        if len(self.controllers) == 1:
+            return [self.controllers[0]] * n
+        picks = rng.choice(len(self.controllers), size=n, p=self.weights)
+        return [self.controllers[i] for i in picks]
 
 
-def register_controller(name: str, factory: Callable[[], CarController]) -> None:
-    """Make ``factory`` available as ``opponent=<name>`` (idempotent for the same factory)."""
-    if CONTROLLERS.get(name, factory) is not factory:
-        raise ValueError(f"controller name {name!r} is already registered")
-    CONTROLLERS[name] = factory
+def make_opponents(cfg: OpponentConfig) -> Opponents:
+    """Controllers for ``constant``, ``learned`` or ``mixed`` traffic (loads the pool once)."""
+    if cfg.type == "constant":
+        return Opponents([ConstantSpeedController()], [1.0])
+    from memrl.modules.opponents import LearnedCarController  # torch networks: load lazily
 
-
-def make_controller(name: str) -> CarController:
-    """Build a registered controller, with a clear error for an unknown name."""
-    try:
-        return CONTROLLERS[name]()
-    except KeyError:
-        raise ValueError(
-            f"env config 'opponent': unknown controller {name!r}; known: {sorted(CONTROLLERS)}"
-        ) from None
+    learned = LearnedCarController(cfg.pool, epsilon=cfg.epsilon)
+    if cfg.type == "learned":
+        return Opponents([learned], [1.0])
+    p = float(cfg.learned_fraction)
+    return Opponents([ConstantSpeedController(), learned], [1.0 - p, p])

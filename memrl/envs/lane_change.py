@@ -17,7 +17,7 @@ from highway_env.road.lane import LineType, StraightLane
 from highway_env.road.road import Road, RoadNetwork
 
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
-from memrl.envs.controllers import CarController, make_controller
+from memrl.envs.controllers import CarController, Opponents, make_opponents
 from memrl.envs.render import BEVRenderer, View
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
 
@@ -90,6 +90,7 @@ class LaneChangeEnv(AbstractEnv):
         self.others: list[CurvatureVehicle] = []
         self.controllers: list[CarController] = []
         self._bev: BEVRenderer | None = None
+        self._opponents: Opponents | None = None
         self._scene: BEVRenderer | None = None
         super().__init__(config, render_mode)
 
@@ -105,6 +106,7 @@ class LaneChangeEnv(AbstractEnv):
         self.cfg = validate_env_config(self.config, allow=AbstractEnv.default_config())
         self.config["offscreen_rendering"] = True
         self._bev = self._scene = None
+        self._opponents = None
 
     def define_spaces(self) -> None:
         """Our own action and observation types (highway-env's factories only know theirs)."""
@@ -130,9 +132,12 @@ class LaneChangeEnv(AbstractEnv):
         self.road.vehicles.append(agent)
         self.others = self._spawn_others(agent)
         self.road.vehicles.extend(self.others)
-        self.controllers = [make_controller(cfg.opponent)]
-        for car in self.others:
-            car.controller = self.controllers[0]
+        if self._opponents is None:  # built once per env: a learned pool is loaded once
+            self._opponents = make_opponents(cfg.opponent)
+        self.controllers = list(self._opponents.controllers)
+        for car, controller in zip(self.others, self._opponents.assign(rng, len(self.others)),
+                                   strict=True):
+            car.controller, car.kind = controller, controller.kind
         for controller in self.controllers:
             controller.reset(self, self._cars_of(controller))
         self.reached_target = self._inside_target_lane(*self._lateral_extent(agent))

@@ -63,6 +63,10 @@ class CurvatureVehicle(Vehicle):
         self.target_lane = target_lane
         self.controller: Any = None
         """The :class:`~memrl.envs.controllers.CarController` driving this car (None: the agent)."""
+        self.policy_index = 0
+        """Learned cars: which network of the opponent pool drives this car this episode."""
+        self.frames: np.ndarray | None = None
+        """Learned cars: the car's own stack of BEV frames."""
         lim = limits or {}
         self.speed_step = float(lim.get("speed_step", 0.1))
         self.curvature_step = float(lim.get("curvature_step", 0.01))

@@ -1,0 +1,127 @@
+"""Other cars driven by earlier trained agents (Sec. IV-A: "copying the past trained agents").
+
+Each learned car sees its own 84x84 BEV stack (rendered centred on it, its own target lane
+highlighted, itself in the agent's shade) and acts with the 9 actions through one of the pool's
+Q-networks. All learned cars of a step are served by one batched forward pass: the pool's
+networks are stacked with ``torch.func.stack_module_state`` and run under ``vmap``.
+"""
+
+from __future__ import annotations
+
+import copy
+import glob
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from torch.func import functional_call, stack_module_state
+
+from memrl.envs.controllers import CarController
+from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
+from memrl.modules.qnet import QNetwork
+
+if TYPE_CHECKING:
+    from memrl.envs.lane_change import LaneChangeEnv
+
+
+class OpponentPoolError(ValueError):
+    """A pool entry matches no checkpoint, or a checkpoint cannot drive a car."""
+
+
+def expand_pool(pool: Sequence[str]) -> list[Path]:
+    """Checkpoint files of the pool entries (run folders, ``final.pt`` files or globs)."""
+    from memrl.checkpoint import resolve
+
+    files: list[Path] = []
+    for entry in pool:
+        matches = sorted(glob.glob(str(entry))) if glob.has_magic(str(entry)) else [str(entry)]
+        if not matches:
+            raise OpponentPoolError(f"opponent.pool: no checkpoint matches {entry!r}")
+        for match in matches:
+            try:
+                files.append(resolve(match))
+            except ValueError as err:
+                raise OpponentPoolError(f"opponent.pool: {err}") from err
+    return files
+
+
+class LearnedCarController(CarController):
+    """Drives cars with greedy (or epsilon-greedy) Q-networks of past agents.
+
+    Args:
+        pool: checkpoint entries (see :func:`expand_pool`) or already built networks.
+        epsilon: probability of a uniformly random action per car and step.
+    """
+
+    kind = "learned"
+
+    def __init__(self, pool: Sequence[str | QNetwork], epsilon: float = 0.0) -> None:
+        from memrl.checkpoint import load_qnet
+
+        nets: list[QNetwork] = []
+        for entry in pool:
+            if isinstance(entry, QNetwork):
+                nets.append(entry)
+            else:
+                nets += [load_qnet(f)[0] for f in expand_pool([entry])]
+        if not nets:
+            raise OpponentPoolError("opponent.pool is empty: learned cars need past agents")
+        self.epsilon = float(epsilon)
+        self.forward_calls = 0
+        """Number of batched forward passes made (one per step with learned cars)."""
+        self._set_networks(nets)
+
+    def _set_networks(self, nets: list[QNetwork]) -> None:
+        self.networks = [n.eval() for n in nets]
+        params, buffers = stack_module_state(self.networks)  # type: ignore[arg-type]
+        self._params = {k: v.detach() for k, v in params.items()}
+        self._buffers = buffers
+        self._skeleton = copy.deepcopy(self.networks[0]).to("meta")
+
+    def add_network(self, net: QNetwork) -> None:
+        """Add a snapshot (e.g. of the agent being trained) to the pool; used from the next
+        episode on."""
+        self._set_networks([*self.networks, copy.deepcopy(net)])
+
+    @torch.no_grad()
+    def q_values(self, model_index: torch.Tensor, stacks: torch.Tensor) -> torch.Tensor:
+        """Q-values ``[N, 9]``: car i through network ``model_index[i]``, in one vmapped pass."""
+        self.forward_calls += 1
+
+        def run(params: dict, buffers: dict, x: torch.Tensor) -> torch.Tensor:
+            return functional_call(self._skeleton, (params, buffers), (x,))
+
+        every = torch.vmap(run, in_dims=(0, 0, None))(self._params, self._buffers, stacks)
+        return every[model_index, torch.arange(len(model_index))]
+
+    def reset(self, env: LaneChangeEnv, cars: Sequence[CurvatureVehicle]) -> None:
+        """Each car draws a network and a target lane (from the env's generator: seeded)."""
+        rng = env.np_random
+        for car in cars:
+            car.target_lane = int(rng.integers(env.cfg.lanes_count))
+            car.policy_index = int(rng.integers(len(self.networks)))
+            car.frames = None
+
+    def _stack(self, env: LaneChangeEnv, car: CurvatureVehicle) -> np.ndarray:
+        frame = env.observe_from(car, car.target_lane)
+        if frame.shape[0] == 3:  # RGB drawing: the same gray levels as the agent's pipeline
+            from torchrl.envs.transforms.functional import rgb_to_grayscale
+
+            frame = rgb_to_grayscale(torch.from_numpy(frame)).numpy()
+        if car.frames is None:  # like CatFrames(padding="same") at reset
+            car.frames = np.repeat(frame, 4, axis=0)
+        else:
+            car.frames = np.concatenate([car.frames[1:], frame])
+        return car.frames
+
+    def act(self, env: LaneChangeEnv, cars: Sequence[CurvatureVehicle]) -> np.ndarray:
+        stacks = torch.from_numpy(np.stack([self._stack(env, car) for car in cars]))
+        index = torch.tensor([car.policy_index for car in cars])
+        actions = self.q_values(index, stacks).argmax(-1).numpy()
+        if self.epsilon > 0:
+            rng = env.np_random
+            explore = rng.random(len(cars)) < self.epsilon
+            actions = np.where(explore, rng.integers(N_ACTIONS, size=len(cars)), actions)
+        return actions.astype(np.int64)

@@ -1,0 +1,129 @@
+"""Other cars driven by past agents: greedy on their own view, one batched pass, pools."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from memrl.checkpoint import save_qnet
+from memrl.envs.config import EnvConfigError
+from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.torchrl_env import make_env, unwrap
+from memrl.envs.vehicles import ACTIONS
+from memrl.modules.opponents import LearnedCarController, OpponentPoolError
+from memrl.modules.qnet import QNetwork
+from memrl.train import train
+from tests.helpers import TINY
+
+
+@pytest.fixture(scope="module")
+def pool(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pool")
+    paths = []
+    for seed in (1, 2):
+        torch.manual_seed(seed)
+        paths.append(str(save_qnet(root / f"agent{seed}" / "final.pt", QNetwork(), {})))
+    return paths
+
+
+def learned_env(pool, **extra) -> LaneChangeEnv:
+    env = LaneChangeEnv(config={"opponent": {"type": "learned", "pool": pool}, **extra})
+    env.reset(seed=0)
+    return env
+
+
+def controller(env: LaneChangeEnv) -> LearnedCarController:
+    return next(c for c in env.controllers if c.kind == "learned")
+
+
+def test_learned_car_takes_its_checkpoints_greedy_action_on_its_own_view(pool):
+    env = learned_env(pool, vehicles_count=3)
+    ctrl = controller(env)
+    for _ in range(6):
+        cars = list(env.others)
+        before = [(c.speed, c.curvature) for c in cars]
+        expected = []
+        for car in cars:
+            frame = env.observe_from(car, car.target_lane)  # its own view, itself centred
+            stack = np.repeat(frame, 4, 0) if car.frames is None else np.concatenate(
+                [car.frames[1:], frame])
+            with torch.no_grad():
+                q = ctrl.networks[car.policy_index](torch.from_numpy(stack))
+            expected.append(int(q.argmax()))
+        env.step(4)
+        for car, (v, k), a in zip(cars, before, expected, strict=True):
+            ds, dk = ACTIONS[a]
+            assert car.speed == pytest.approx(min(max(v + 0.1 * ds, 0.0), 15.0))
+            assert car.curvature == pytest.approx(min(max(k + 0.01 * dk, -0.05), 0.05))
+
+
+def test_all_learned_cars_share_one_forward_pass_per_step(pool):
+    env = learned_env(pool, vehicles_count=5)
+    assert len(env.others) == 5 and all(c.kind == "learned" for c in env.others)
+    ctrl = controller(env)
+    calls = ctrl.forward_calls
+    for _ in range(10):
+        env.step(4)
+    assert ctrl.forward_calls - calls == 10
+    assert {c.policy_index for c in env.others} <= {0, 1}
+
+
+def test_mixed_traffic_gives_the_configured_share(pool):
+    env = LaneChangeEnv(config={"opponent": {"type": "mixed", "pool": pool,
+                                             "learned_fraction": 0.3}, "vehicles_count": 5})
+    kinds = []
+    for seed in range(150):
+        env.reset(seed=seed)
+        kinds += [c.kind for c in env.others]
+    share = kinds.count("learned") / len(kinds)
+    assert abs(share - 0.3) < 0.05, share
+    assert set(kinds) == {"learned", "constant"}
+
+
+def test_learned_cars_are_reproducible_from_the_seed(pool):
+    env = learned_env(pool)
+    trace = []
+    for _ in range(2):
+        env.reset(seed=7)
+        for _ in range(20):
+            env.step(4)
+        trace.append([(round(c.position[0], 9), round(c.position[1], 9)) for c in env.others])
+    assert trace[0] == trace[1]
+
+
+@pytest.mark.parametrize(("pool_value", "error", "match"), [
+    (["/nonexistent/run"], ValueError, "nonexistent"),
+    (["/nonexistent/*.pt"], OpponentPoolError, "no checkpoint matches"),
+    ([], EnvConfigError, "opponent.pool"),
+])
+def test_a_bad_pool_fails_at_start_with_a_clear_error(pool_value, error, match):
+    with pytest.raises(error, match=match):
+        make_env({"opponent": {"type": "learned", "pool": pool_value}})
+
+
+def test_a_corrupt_checkpoint_in_the_pool_is_named(tmp_path):
+    bad = tmp_path / "final.pt"
+    bad.write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="final.pt"):
+        make_env({"opponent": {"type": "mixed", "pool": [str(bad)]}})
+
+
+def test_opponent_group_composes_and_self_play_grows_the_pool(compose_cfg, tmp_path, pool):
+    cfg = compose_cfg("train", TINY + ["opponent=mixed", f"env.opponent.pool=[{pool[0]}]",
+                                       "self_play_every=1", "total_episodes=2"])
+    assert cfg.env.opponent.type == "mixed"
+    summary = train(cfg, tmp_path)
+    assert summary.episodes == 2
+    assert sorted(p.name for p in (tmp_path / "pool").iterdir()) == [
+        "episode_0000001.pt", "episode_0000002.pt"]
+    with pytest.raises(ValueError, match="self_play_every"):
+        train(compose_cfg("train", TINY + ["self_play_every=1"]), tmp_path / "x")
+
+
+def test_pool_accepts_run_folders_and_globs(pool, tmp_path):
+    folder = str(tmp_path)
+    save_qnet(tmp_path / "checkpoints" / "final.pt", QNetwork(), {})
+    env = make_env({"opponent": {"type": "learned", "pool": [folder, pool[0].replace("agent1", "agent*")]}})
+    ctrl = next(c for c in unwrap(env).controllers if c.kind == "learned")
+    assert len(ctrl.networks) == 3
