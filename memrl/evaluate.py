@@ -1,0 +1,68 @@
+"""``python -m memrl.evaluate [policy=checkpoint|scripted|random|human] [key=value ...]``.
+
+Evaluates policies under the Table III protocol (``conf/protocol/paper.yaml``): the same
+scenes for every policy, survival and goal scores for random and non-goal starts. A trained
+run's results go into ``<run>/eval/`` (next to its ``config.yaml``, where the report finds
+them); other policies' into this command's Hydra run folder.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import hydra
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from memrl.cli import run_hydra
+from memrl.configs import register_configs
+from memrl.evaluation.policies import PolicySource
+from memrl.evaluation.protocol import check_protocol
+from memrl.evaluation.results import EvalResult
+from memrl.evaluation.session import evaluate_candidate, score_line
+
+log = logging.getLogger(__name__)
+
+
+def workers_of(cfg: DictConfig) -> int:
+    """The ``workers`` key: 0 means one process per CPU."""
+    workers = int(cfg.workers)
+    if workers < 0:
+        raise ValueError(f"evaluate 'workers': need >= 0, got {workers}")
+    return workers or os.cpu_count() or 1
+
+
+def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
+    """Evaluate every candidate of ``cfg.policy`` and write their evaluation folders.
+
+    Args:
+        cfg: the composed ``evaluate`` config.
+        out_dir: folder for policies that are not training runs (default: Hydra's
+            ``paths.output_dir``).
+    """
+    protocol = check_protocol(cfg.protocol)
+    if int(cfg.batch) < 1:
+        raise ValueError(f"evaluate 'batch': need >= 1, got {cfg.batch}")
+    source: PolicySource = instantiate(cfg.policy)
+    policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
+    results = []
+    for cand in source.candidates():
+        cand.meta["policy_config"] = policy_cfg
+        result = evaluate_candidate(
+            cand, protocol, env_cfg=cfg.env, out_dir=Path(out_dir or cfg.paths.output_dir),
+            workers=workers_of(cfg), batch=int(cfg.batch), progress=bool(cfg.progress))
+        print(score_line(result), f"-> {result.path}")
+        results.append(result)
+    return results
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    register_configs()
+    run_hydra(main)

@@ -1,0 +1,205 @@
+"""Evaluation episodes, fast: gym envs stepped in lockstep batches, in worker processes.
+
+Observations are exactly those of the TorchRL pipeline (``make_env``): the env's grayscale
+BEV frame, the last ``frame_stack`` of them stacked oldest first, the first frame repeated
+after a reset (``CatFrames``' padding); ``tests/test_evaluate.py`` checks the equality step by
+step. The pipeline itself is not used here because its per-step overhead costs more than
+the env step, and a batch of envs lets a Q-network act on all of them in one forward pass.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from memrl.data.recording import StopRecording
+from memrl.envs.lane_change import LaneChangeEnv
+from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
+
+log = logging.getLogger(__name__)
+
+StepHook = Callable[[LaneChangeEnv, np.ndarray, int | None, EpisodeRecord | None], None]
+"""Called after each reset (action None) and each step (the action taken) with the env and
+the stacked pixels; the last call of an episode also gets its finished record."""
+
+
+class Actor(ABC):
+    """Chooses the actions of several episodes stepped together (slot = place in the batch)."""
+
+    batchable: bool = True
+    """May drive several envs in lockstep."""
+    parallel: bool = True
+    """May run in worker processes (picklable, opens no window)."""
+    needs_render: bool = False
+    """Needs ``render_mode='rgb_array'`` (full-scene pictures)."""
+
+    def begin(self, slot: int, env: LaneChangeEnv, seed: int) -> None:  # noqa: B027
+        """A new episode starts in ``slot`` (after the env's reset with ``seed``)."""
+
+    @abstractmethod
+    def act(self, slots: Sequence[int], envs: Sequence[LaneChangeEnv], pixels: np.ndarray) -> np.ndarray:
+        """Actions (int array ``[B]``) for the running ``slots``; ``pixels`` uint8 ``[B, 4, H, W]``."""
+
+    def close(self) -> None:  # noqa: B027
+        """Release windows or other resources."""
+
+
+class FrameStack:
+    """The last ``n`` frames along the channel axis, padded with the first frame after a reset."""
+
+    # Hand-written: mirrors TorchRL's CatFrames (padding="same") on plain numpy arrays.
+    def __init__(self, n: int = 4) -> None:
+        self.n = n
+        self.frames: np.ndarray | None = None
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        self.frames = np.repeat(obs, self.n, axis=0)
+        return self.frames
+
+    def push(self, obs: np.ndarray) -> np.ndarray:
+        assert self.frames is not None
+        self.frames = np.concatenate([self.frames[obs.shape[0]:], obs])
+        return self.frames
+
+
+@dataclass
+class Job:
+    """Episodes of one initial-lane setting for one process."""
+
+    env: dict[str, Any]
+    """Full env config (the protocol's rules applied)."""
+    initial_lane: str
+    episodes: list[tuple[int, int]]
+    """(episode index, reset seed) pairs."""
+
+
+@dataclass
+class JobResult:
+    records: list[EpisodeRecord] = field(default_factory=list)
+    stopped_early: bool = False
+    """A human pressed Esc: the episode under way was dropped, the finished ones kept."""
+
+
+@dataclass
+class _Slot:
+    index: int
+    seed: int
+    stack: FrameStack
+    start_lane: int
+    vehicles: int
+    ret: float = 0.0
+
+
+def run_job(actor: Actor, job: Job, batch: int = 16, frame_stack: int = 4,
+            hook: StepHook | None = None) -> JobResult:
+    """Run the job's episodes, up to ``batch`` at a time; a finished slot takes the next one."""
+    batch = max(1, min(batch if actor.batchable else 1, len(job.episodes)))
+    render = "rgb_array" if actor.needs_render or hook is not None else None
+    envs = [LaneChangeEnv(config=job.env, render_mode=render) for _ in range(batch)]
+    queue = list(job.episodes)
+    slots: list[_Slot | None] = [None] * batch
+    result = JobResult()
+    try:
+        while True:
+            for s, env in enumerate(envs):
+                if slots[s] is None and queue:
+                    slots[s] = _start(actor, s, env, *queue.pop(0), frame_stack, hook)
+            running = [s for s in range(batch) if slots[s] is not None]
+            if not running:
+                break
+            pixels = np.stack([slots[s].stack.frames for s in running])  # type: ignore[union-attr,misc]
+            actions = actor.act(running, [envs[s] for s in running], pixels)
+            for s, action in zip(running, actions, strict=True):
+                record = _step(envs[s], slots[s], int(action), job, hook)  # type: ignore[arg-type]
+                if record is not None:
+                    result.records.append(record)
+                    slots[s] = None
+    except StopRecording:
+        log.info("evaluation stopped after %d finished episodes", len(result.records))
+        result.stopped_early = True
+    finally:
+        for env in envs:
+            env.close()
+    return result
+
+
+def _start(actor: Actor, slot: int, env: LaneChangeEnv, index: int, seed: int, frame_stack: int,
+           hook: StepHook | None) -> _Slot:
+    obs, _ = env.reset(seed=seed)
+    stack = FrameStack(frame_stack)
+    stack.reset(obs)
+    actor.begin(slot, env, seed)
+    if hook is not None:
+        hook(env, stack.frames, None, None)  # type: ignore[arg-type]
+    return _Slot(index, seed, stack, env.current_lane(), len(env.others))
+
+
+def _step(env: LaneChangeEnv, slot: _Slot, action: int, job: Job, hook: StepHook | None
+          ) -> EpisodeRecord | None:
+    obs, reward, terminated, truncated, info = env.step(action)
+    slot.stack.push(obs)
+    slot.ret += float(reward)
+    record = None
+    if terminated or truncated:
+        record = EpisodeRecord(
+            initial_lane=job.initial_lane, episode=slot.index, seed=slot.seed, steps=env.steps,
+            episode_return=slot.ret, collided=bool(info["collided"]),
+            reached_target=bool(info["reached_target"]), duration=env.cfg.duration,
+            target_lane=int(env.target_lane), start_lane=slot.start_lane, vehicles=slot.vehicles)
+    if hook is not None:
+        hook(env, slot.stack.frames, action, record)  # type: ignore[arg-type]
+    return record
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)  # one process per core
+
+
+def split(jobs: Sequence[Job], parts: int) -> list[Job]:
+    """Cut jobs into about ``parts`` pieces of similar size (for worker processes)."""
+    total = sum(len(j.episodes) for j in jobs)
+    size = max(1, math.ceil(total / max(1, parts)))
+    return [Job(j.env, j.initial_lane, j.episodes[i:i + size])
+            for j in jobs for i in range(0, len(j.episodes), size)]
+
+
+def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int = 16,
+             progress: bool = False, desc: str = "evaluate") -> JobResult:
+    """Run all jobs, in ``workers`` processes when the actor allows it; records come back sorted
+    by (initial lane, episode index), whatever the split."""
+    total = sum(len(j.episodes) for j in jobs)
+    bar = tqdm(total=total, desc=desc, unit="ep", disable=not progress, dynamic_ncols=True)
+    out = JobResult()
+    if workers > 1 and actor.parallel:
+        # spawn, not fork: a forked child may hang in torch's thread pool
+        pieces = split(jobs, 4 * workers)
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
+                                 initializer=_init_worker) as pool:
+            futures = [pool.submit(run_job, actor, piece, batch) for piece in pieces]
+            for future in as_completed(futures):
+                res = future.result()
+                out.records += res.records
+                bar.update(len(res.records))
+    else:
+        for job in jobs:
+            res = run_job(actor, job, batch)
+            out.records += res.records
+            bar.update(len(res.records))
+            if res.stopped_early:
+                out.stopped_early = True
+                break
+    bar.close()
+    order = {lane: i for i, lane in enumerate(INITIAL_LANES)}
+    out.records.sort(key=lambda r: (order.get(r.initial_lane, 99), r.episode))
+    return out

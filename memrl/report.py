@@ -1,0 +1,166 @@
+"""``python -m memrl.report runs=[<run, multirun or evaluation folders>]``: Table III, Fig. 5, Fig. 7.
+
+Finds every evaluation (``eval.json``) and training run (``episodes.csv``) below the given
+folders; with ``evaluate_missing`` it first evaluates trained runs that have no evaluation
+under the configured protocol. Writes into its Hydra run folder: ``table3.md``,
+``table3.csv``, ``differences.csv``, ``fig5.png``, ``fig7_<row>.png``, ``rollouts_<row>.mp4``
+and ``report.json``, and prints the markdown table.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from memrl.cli import run_hydra
+from memrl.configs import register_configs
+from memrl.evaluate import workers_of
+from memrl.evaluation import figures, rollouts, stats, tables
+from memrl.evaluation.policies import CheckpointSource
+from memrl.evaluation.protocol import check_protocol, protocol_id
+from memrl.evaluation.results import EVAL_JSON, EvalResult, find_results, read_result
+from memrl.evaluation.session import evaluate_candidate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ReportFiles:
+    """What the report wrote."""
+
+    table_md: Path
+    table_csv: Path
+    differences_csv: Path
+    report_json: Path
+    fig5: Path | None = None
+    strips: list[Path] = field(default_factory=list)
+    videos: list[Path] = field(default_factory=list)
+    markdown: str = ""
+
+
+def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
+    """Evaluate the trained runs under ``cfg.runs`` whose ``eval/eval.json`` is missing or was
+    made under another protocol."""
+    protocol = check_protocol(cfg.protocol)
+    wanted = protocol_id(protocol)
+    done = []
+    for item in cfg.runs:
+        try:
+            source = CheckpointSource(str(item))
+        except FileNotFoundError:
+            continue  # no training run there (e.g. an evaluation folder)
+        for cand in source.candidates():
+            assert cand.out_dir is not None
+            existing = cand.out_dir / EVAL_JSON
+            if existing.is_file() and read_result(existing).protocol_id == wanted:
+                continue
+            log.info("evaluating %s (%s)", cand.meta["run"], cand.name)
+            done.append(evaluate_candidate(cand, protocol, workers=workers_of(cfg),
+                                           batch=int(cfg.batch), progress=bool(cfg.progress)))
+    return done
+
+
+def _rollouts(cfg: DictConfig, results: list[EvalResult], out: Path, files: ReportFiles) -> None:
+    r = cfg.rollouts
+    by = stats.group(results)
+    for label in r.rows:
+        units = by.get(str(label), [])
+        if r.unit is not None:
+            units = [u for u in units if u.unit == str(r.unit)]
+        if not units:
+            log.info("fig. 7: no evaluation of row %s%s; skipped", label,
+                     f" unit {r.unit}" if r.unit is not None else "")
+            continue
+        result = units[0]
+        actor = rollouts.actor_for(result)
+        if actor is None:
+            log.info("fig. 7: %s cannot be replayed (a person drove); skipped", label)
+            continue
+        episodes = rollouts.pick_episodes(result, str(r.initial_lane), int(r.count), str(r.pick))
+        caps = [rollouts.capture(actor, result, str(r.initial_lane), e) for e in episodes]
+        for c in caps:  # the replay must be the evaluated episode
+            rec = next(x for x in result.records() if x.initial_lane == r.initial_lane
+                       and x.episode == c.record.episode)
+            if (rec.steps, rec.collided, rec.reached_target) != \
+                    (c.record.steps, c.record.collided, c.record.reached_target):
+                log.warning("fig. 7: replay of %s episode %d differs from its evaluation", label, rec.episode)
+        name = str(label).replace(" ", "_")
+        steps = None if r.steps is None else [int(x) for x in r.steps]
+        picture = rollouts.strip(caps, steps, float(r.scale))
+        files.strips.append(rollouts.write_png(picture, out / f"fig7_{name}.png"))
+        if r.video:
+            files.videos.append(rollouts.write_video(caps, out / f"rollouts_{name}.mp4", float(r.fps)))
+
+
+def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
+    """Build Table III (markdown + CSV), the pairwise differences, Fig. 5 and Fig. 7.
+
+    Args:
+        cfg: the composed ``report`` config.
+        out_dir: where to write (default: Hydra's ``paths.output_dir``).
+    """
+    if not cfg.runs:
+        raise ValueError("report 'runs': give one or more run, multirun or evaluation folders, "
+                         "e.g. runs=[outputs/train/multiruns/2026-11-22_10-00-00]")
+    out = Path(out_dir or cfg.paths.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if cfg.evaluate_missing:
+        evaluate_missing(cfg)
+    results = find_results([str(p) for p in cfg.runs])
+    if not results:
+        raise FileNotFoundError(f"report: no evaluation (eval.json) under {list(cfg.runs)}; run "
+                                "python -m memrl.evaluate first or set evaluate_missing=true")
+    pid = stats.check_protocols(results)
+    seen: dict[tuple[str, str], Path] = {}
+    for res in results:
+        if (res.name, res.unit) in seen:
+            log.warning("two evaluations of %s [%s]: %s and %s (both count)", res.name, res.unit,
+                        seen[(res.name, res.unit)], res.path)
+        seen[(res.name, res.unit)] = res.path
+    scfg = stats.StatsConfig(float(cfg.confidence), int(cfg.n_resamples), int(cfg.bootstrap_seed))
+    rows = stats.table(results, scfg)
+    diffs = stats.differences(results, [list(p) for p in cfg.comparisons], scfg)
+    md = tables.markdown(rows, diffs, scfg.confidence)
+    files = ReportFiles(out / "table3.md", out / "table3.csv", out / "differences.csv",
+                        out / "report.json", markdown=md)
+    files.table_md.write_text(md)
+    tables.write_csv(rows, diffs, files.table_csv, files.differences_csv)
+    print(md)
+    if cfg.fig5:
+        files.fig5 = figures.learning_curves(
+            figures.find_training_runs([str(p) for p in cfg.runs]), out / "fig5.png",
+            window=int(cfg.smooth), confidence=scfg.confidence, n_resamples=int(cfg.curve_resamples))
+    if cfg.rollouts.rows:
+        _rollouts(cfg, results, out, files)
+    doc = {
+        "protocol_id": pid, "protocol": results[0].protocol,
+        "rows": [{"label": r.label, "units": r.units,
+                  "cells": {f"{lane}/{metric}": asdict(c) for (lane, metric), c in r.cells.items()}}
+                 for r in rows],
+        "differences": [{"a": d.a, "b": d.b, "column": "/".join(d.column), **asdict(d.cell),
+                         "excludes_zero": d.cell.excludes_zero()} for d in diffs],
+        "sources": [str(r.path) for r in results],
+        "files": {k: [str(p) for p in v] if isinstance(v, list) else (str(v) if v else None)
+                  for k, v in asdict(files).items() if k != "markdown"},
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
+    files.report_json.write_text(json.dumps(doc, indent=2))
+    for path in [files.table_md, files.fig5, *files.strips, *files.videos]:
+        if path is not None:
+            print(f"wrote {path}")
+    return files
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="report")
+def main(cfg: DictConfig) -> None:
+    report(cfg)
+
+
+if __name__ == "__main__":
+    register_configs()
+    run_hydra(main)
