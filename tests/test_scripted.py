@@ -63,19 +63,21 @@ class Trace:
                         strict=True))
 
 
-@pytest.mark.parametrize(("lanes", "start", "target"), [(2, 0, 1), (2, 1, 0), (3, 0, 2)])
-def test_lane_change_settles_on_the_centre_without_overshoot(lanes, start, target):
+@pytest.mark.parametrize(("lanes", "start", "target", "speed"),
+                         [(2, 0, 1, 8.0), (2, 1, 0, 8.0), (3, 0, 2, 8.0), (2, 0, 1, 2.0), (2, 1, 0, 13.0)])
+def test_lane_change_settles_on_the_centre_without_overshoot(lanes, start, target, speed):
     trace = Trace(lanes=lanes, target=target)
-    trace.env.place_agent(500.0, start * W, speed=8.0)
+    trace.driver.cruise_speed = speed
+    trace.env.place_agent(500.0, start * W, speed=speed)
     t = trace.run(250)
     goal = target * W
     direction = np.sign(goal - start * W)
     assert not t["collided"].any() and t["reached"][-1]
-    assert (direction * (t["y"] - goal)).max() < 0.3  # never beyond the centre tolerance
-    assert np.all(np.abs(t["y"][-50:] - goal) < 0.1) and np.all(np.abs(t["heading"][-50:]) < 0.02)
-    assert t["centred"][-50:].all()
+    assert (direction * (t["y"] - goal)).max() < 0.02  # never past the centre line
+    assert np.all(np.abs(t["y"][-100:] - goal) < 0.05) and np.all(np.abs(t["heading"][-100:]) < 0.01)
+    assert t["centred"][-100:].all()
     steps_to_goal = int(np.argmax(t["reached"]))
-    assert steps_to_goal < 60 * abs(target - start)  # about 4 s per lane on an empty road
+    assert steps_to_goal < 80 * abs(target - start)  # 3-8 s per lane on an empty road
 
 
 def test_keeps_a_safe_gap_behind_a_slower_car():

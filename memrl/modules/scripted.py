@@ -83,6 +83,7 @@ class ScriptedDriver(DrivingPolicy):
         lateral_gain: lateral speed wanted per metre of offset from the lane centre [1/s].
         lateral_speed_gain: lateral acceleration wanted per m/s of lateral-speed error [1/s].
         max_lateral_speed: lateral speed limit during a lane change [m/s].
+        max_heading: heading limit during a lane change [rad].
         align_gain: speed change wanted per metre to the chosen gap in the next lane [1/s].
         max_align_speed: largest speed difference to the gap used to line up with it [m/s].
         align_buffer: extra gap [m] beyond the merge test's, aimed at when lining up.
@@ -102,9 +103,10 @@ class ScriptedDriver(DrivingPolicy):
         front_gap: float = 4.0,
         rear_gap: float = 3.0,
         time_headway: float = 0.5,
-        lateral_gain: float = 0.6,
-        lateral_speed_gain: float = 3.0,
+        lateral_gain: float = 0.8,
+        lateral_speed_gain: float = 6.0,
         max_lateral_speed: float = 1.2,
+        max_heading: float = 0.3,
         align_gain: float = 0.5,
         max_align_speed: float = 3.0,
         align_buffer: float = 2.0,
@@ -123,6 +125,7 @@ class ScriptedDriver(DrivingPolicy):
         self.lateral_gain = lateral_gain
         self.lateral_speed_gain = lateral_speed_gain
         self.max_lateral_speed = max_lateral_speed
+        self.max_heading = max_heading
         self.align_gain = align_gain
         self.max_align_speed = max_align_speed
         self.align_buffer = align_buffer
@@ -167,8 +170,12 @@ class ScriptedDriver(DrivingPolicy):
         car = env.vehicle
         e = float(car.position[1]) - y_ref
         vy = car.speed * np.sin(car.heading)
-        vy_ref = float(np.clip(-self.lateral_gain * e, -self.max_lateral_speed, self.max_lateral_speed))
         v = max(car.speed, 1.0)
+        # Lateral speed limits: the configured one, a heading limit, and the speed from which
+        # half the largest lateral acceleration (v^2 * curvature_limit) still stops at the centre.
+        brake = 0.5 * v * v * env.cfg.curvature_limit
+        limit = min(self.max_lateral_speed, v * np.sin(self.max_heading), np.sqrt(2.0 * brake * abs(e)))
+        vy_ref = -float(np.sign(e)) * min(self.lateral_gain * abs(e), limit)
         # d(vy)/dt = v^2 * kappa * cos(heading)
         kappa_ref = self.lateral_speed_gain * (vy_ref - vy) / (v * v * max(np.cos(car.heading), 0.5))
         step = env.cfg.curvature_step
@@ -233,7 +240,7 @@ class ScriptedDriver(DrivingPolicy):
                 return False
         return True
 
-    def _slots(self, scene: _Scene, lane_cars: np.ndarray) -> list[tuple[float, ...]]:
+    def _slots(self, scene: _Scene, lane_cars: np.ndarray) -> list[tuple[float, float, float, float, float]]:
         """Gaps between consecutive cars of the destination lane.
 
         Each is ``(lo, hi, lo_speed, hi_speed, speed)``: the agent's rear bumper must lie in
@@ -248,12 +255,13 @@ class ScriptedDriver(DrivingPolicy):
         for rear, front in pairs:
             lo, hi, lo_speed, hi_speed, speed = -np.inf, np.inf, 0.0, 0.0, self.cruise_speed
             if rear is not None:
-                lo_speed = scene.vx[rear]
-                lo = scene.front[rear] + self.rear_gap + self.align_buffer + self.time_headway * lo_speed
+                lo_speed = float(scene.vx[rear])
+                lo = (float(scene.front[rear]) + self.rear_gap + self.align_buffer
+                      + self.time_headway * lo_speed)
                 speed = max(speed, lo_speed)
             if front is not None:
-                hi_speed = scene.vx[front]
-                hi = (scene.back[front] - length - self.front_gap - self.align_buffer
+                hi_speed = float(scene.vx[front])
+                hi = (float(scene.back[front]) - length - self.front_gap - self.align_buffer
                       - self.time_headway * scene.ego_v)
                 speed = min(speed, hi_speed)
             slots.append((lo, hi, lo_speed, hi_speed, speed))
