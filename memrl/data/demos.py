@@ -131,6 +131,19 @@ def _write_metadata(folder: Path, meta: Mapping[str, Any]) -> None:
     (folder / METADATA_FILE).write_text(json.dumps(meta, indent=1, default=str))
 
 
+def _fsync_tree(folder: Path) -> None:
+    """Flush every file under ``folder`` to disk (a crash then cannot leave zero pages behind
+    a metadata file written later)."""
+    # Hand-written: tensordict's memmap writes go to the page cache and are never fsynced.
+    for file in folder.rglob("*"):
+        if file.is_file():
+            fd = os.open(file, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+
 def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.PathLike,
                metadata: Mapping[str, Any], *, overwrite: bool = False) -> Path:
     """Write transitions and ``metadata.json`` atomically (temporary folder, then rename).
@@ -181,6 +194,7 @@ def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.Pat
             out[start:start + chunk.shape[0]] = chunk
             start += chunk.shape[0]
         del out  # unmap before the rename
+        _fsync_tree(tmp)
         _write_metadata(tmp, meta)  # last: a folder without it is never taken for a dataset
         if path.exists():  # overwrite: move the old one aside, then swap
             old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
