@@ -13,12 +13,14 @@ import logging
 import math
 import multiprocessing as mp
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from memrl.data.recording import StopRecording
@@ -99,9 +101,26 @@ class _Slot:
     ret: float = 0.0
 
 
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """torch on one thread for the block: one process per core is the parallelism here, and
+    torch's OpenMP threads slow down by 10x and more when the cores are busy (spin-waiting)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def run_job(actor: Actor, job: Job, batch: int = 16, frame_stack: int = 4,
             hook: StepHook | None = None) -> JobResult:
     """Run the job's episodes, up to ``batch`` at a time; a finished slot takes the next one."""
+    with one_thread():
+        return _run_job(actor, job, batch, frame_stack, hook)
+
+
+def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHook | None) -> JobResult:
     batch = max(1, min(batch if actor.batchable else 1, len(job.episodes)))
     render = "rgb_array" if actor.needs_render or hook is not None else None
     envs = [LaneChangeEnv(config=job.env, render_mode=render) for _ in range(batch)]
@@ -160,12 +179,6 @@ def _step(env: LaneChangeEnv, slot: _Slot, action: int, job: Job, hook: StepHook
     return record
 
 
-def _init_worker() -> None:
-    import torch
-
-    torch.set_num_threads(1)  # one process per core
-
-
 def split(jobs: Sequence[Job], parts: int) -> list[Job]:
     """Cut jobs into about ``parts`` pieces of similar size (for worker processes)."""
     total = sum(len(j.episodes) for j in jobs)
@@ -184,8 +197,7 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
     if workers > 1 and actor.parallel:
         # spawn, not fork: a forked child may hang in torch's thread pool
         pieces = split(jobs, 4 * workers)
-        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
-                                 initializer=_init_worker) as pool:
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
             futures = [pool.submit(run_job, actor, piece, batch) for piece in pieces]
             for future in as_completed(futures):
                 res = future.result()
