@@ -99,7 +99,8 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
             scene, like the keyboard recorder).
         progress: show a progress bar.
     """
-    env = make_env(env_cfg, frame_stack=frame_stack, render_mode="rgb_array" if render else None)
+    env = make_env(env_config_values(env_cfg), frame_stack=frame_stack,
+                   render_mode="rgb_array" if render else None)
     module = PolicyModule(policy, unwrap(env))
     duration = unwrap(env).cfg.duration
     rec = Recording()
