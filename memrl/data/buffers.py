@@ -67,7 +67,7 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
             n_demo = int(torch.binomial(torch.tensor(float(batch_size)), torch.tensor(share)))
             parts = [b.sample(n) for b, n in ((self.offline_buffer, n_demo),
                                               (self.online_buffer, batch_size - n_demo)) if n > 0]
-            out = torch.cat(parts) if len(parts) > 1 else parts[0]
+            out: TensorDictBase = torch.cat(parts) if len(parts) > 1 else parts[0]  # type: ignore[assignment]
         else:
             out = super().sample(batch_size)
         self.last_demo_count = int(out["is_demo"].sum())

@@ -35,7 +35,7 @@ def comparable(cfg: DictConfig) -> dict[str, Any]:
     """The part of a config that must match for a checkpoint to be resumed."""
     data = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(data, dict)
-    return {k: v for k, v in data.items() if k not in RUNTIME_KEYS}
+    return {str(k): v for k, v in data.items() if k not in RUNTIME_KEYS}
 
 
 def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
