@@ -68,6 +68,8 @@ class _Scene:
         return (self.right > lo - margin) & (self.left < hi + margin)
 
 
+# Hand-written: highway-env's IDM/MOBIL drivers command continuous acceleration and steering
+# toward lane centres, not the agent's 9 discrete speed/curvature changes.
 class ScriptedDriver(DrivingPolicy):
     """Holds the lane centre, keeps safe gaps by speed, changes lane when the gap is safe.
 
