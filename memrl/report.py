@@ -97,6 +97,13 @@ def _rollouts(cfg: DictConfig, results: list[EvalResult], out: Path, files: Repo
             files.videos.append(rollouts.write_video(caps, out / f"rollouts_{name}.mp4", float(r.fps)))
 
 
+def _plain(cfg: DictConfig, out: Path) -> dict:
+    """The resolved config (resolvable outside a Hydra run too)."""
+    saved = cfg.copy()
+    saved.paths.output_dir = str(out)
+    return OmegaConf.to_container(saved, resolve=True)  # type: ignore[return-value]
+
+
 def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     """Build Table III (markdown + CSV), the pairwise differences, Fig. 5 and Fig. 7.
 
@@ -147,7 +154,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
         "sources": [str(r.path) for r in results],
         "files": {k: [str(p) for p in v] if isinstance(v, list) else (str(v) if v else None)
                   for k, v in asdict(files).items() if k != "markdown"},
-        "config": OmegaConf.to_container(cfg, resolve=True),
+        "config": _plain(cfg, out),
     }
     files.report_json.write_text(json.dumps(doc, indent=2))
     for path in [files.table_md, files.fig5, *files.strips, *files.videos]:

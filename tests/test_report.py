@@ -1,0 +1,191 @@
+"""Table III from synthetic evaluation folders: numbers, intervals, differences; the report
+command end to end with its figures; Fig. 7 replays and videos of real episodes."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+
+import cv2
+import numpy as np
+import pytest
+
+from memrl.evaluate import evaluate
+from memrl.evaluation import stats, tables
+from memrl.evaluation.figures import band, find_training_runs, learning_curves, smooth
+from memrl.evaluation.periodic import PERIODIC_CSV, PERIODIC_FIELDS
+from memrl.evaluation.protocol import ProtocolConfig
+from memrl.evaluation.results import find_results
+from memrl.report import report
+from tests.eval_helpers import fake_eval, fake_run
+
+REPORT = ["evaluate_missing=false", "rollouts.rows=[]", "progress=false", "n_resamples=2000",
+          "curve_resamples=200"]
+
+
+def sweep(root, compose_cfg, scores: dict[str, list[tuple[int, int]]], episodes: int = 0):
+    """Run folders of each mode with evaluations of the given (survival, goal) per seed."""
+    for mode, per_seed in scores.items():
+        for seed, (surv, goal) in enumerate(per_seed):
+            run = fake_run(root, compose_cfg, mode=mode, seed=seed, episodes=episodes)
+            label = {"default": "Default"}.get(mode, mode)
+            fake_eval(run / "eval", label, f"seed {seed}", surv, goal, meta={"kind": "checkpoint", "run": str(run)})
+
+
+# --------------------------------------------------------------------------- numbers
+def test_table_means_per_seed_values_and_intervals(tmp_path, compose_cfg):
+    sweep(tmp_path, compose_cfg, {"default": [(50, 40), (60, 40)], "B": [(80, 70), (90, 74)],
+                                  "A": [(50, 30), (62, 36), (56, 33)]})
+    fake_eval(tmp_path / "scripted", "scripted", "scripted", 100, 50)
+    results = find_results([tmp_path])
+    rows = {r.label: r for r in stats.table(results)}
+    assert list(rows) == ["Default", "A", "B", "scripted"]
+    d = rows["Default"].cells[("random", "survival")]
+    assert d.values == [50.0, 60.0] and d.mean == 55.0 and d.over == "seeds"
+    # two seeds: every resample is (a,a), (a,b), (b,a) or (b,b); each end has 25% > 2.5%
+    assert (d.low, d.high) == (50.0, 60.0)
+    g = rows["Default"].cells[("non_goal", "goal")]
+    assert (g.mean, g.low, g.high) == (40.0, 40.0, 40.0)  # equal seeds: no spread
+    a = rows["A"].cells[("random", "survival")]
+    assert a.mean == pytest.approx(56.0) and 50.0 <= a.low < 56.0 < a.high <= 62.0
+    assert rows["A"].units == ["seed 0", "seed 1", "seed 2"]
+    # one unit: the interval is over its 100 episodes (binomial: 50 +- 1.96 * 5)
+    s = rows["scripted"].cells[("random", "goal")]
+    assert s.over == "episodes" and s.mean == 50.0 and s.low == pytest.approx(40.2, abs=3)
+    assert s.high == pytest.approx(59.8, abs=3)
+    assert rows["scripted"].cells[("non_goal", "survival")].low == 100.0
+
+
+def test_pairwise_differences_say_which_intervals_exclude_zero(tmp_path, compose_cfg):
+    sweep(tmp_path, compose_cfg, {"default": [(50, 40), (60, 40)], "B": [(80, 40), (90, 40)],
+                                  "A": [(50, 30), (62, 46)]})
+    results = find_results([tmp_path])
+    diffs = {(d.a, d.column): d.cell for d in stats.differences(results, [["B", "Default"], ["A", "Default"]])}
+    b = diffs[("B", ("random", "survival"))]
+    # B - Default: {80, 85, 90} - {50, 55, 60}; the extremes 20 and 40 each have 6.25% > 2.5%
+    assert (b.mean, b.low, b.high) == (30.0, 20.0, 40.0) and b.excludes_zero()
+    assert diffs[("B", ("random", "goal"))].mean == 0 and not diffs[("B", ("random", "goal"))].excludes_zero()
+    a = diffs[("A", ("random", "survival"))]
+    assert a.mean == pytest.approx(1.0) and a.low < 0 < a.high and not a.excludes_zero()
+    md = tables.markdown(stats.table(results), stats.differences(results, [["B", "Default"], ["A", "Default"]]))
+    assert "| B \u2212 Default | random survival | +30.0 | [20, 40] | **yes** |" in md
+    assert "| A \u2212 Default | random survival | +1.0 |" in md
+    assert "B vs Default: the 95% interval excludes zero for random survival +30.0, non-goal survival +30.0." in md
+    assert "A vs Default:" in md
+    # a missing row is left out, not an error
+    assert stats.differences(results, [["human", "Default"]]) == []
+
+
+def test_single_unit_differences_resample_episodes(tmp_path):
+    fake_eval(tmp_path / "a", "scripted", "scripted", 90, 90)
+    fake_eval(tmp_path / "b", "random", "random", 10, 50)
+    [d] = [x for x in stats.differences(find_results([tmp_path]), [["scripted", "random"]])
+           if x.column == ("random", "survival")]
+    assert d.cell.over == "episodes" and d.cell.mean == 80.0 and 70 < d.cell.low < 80 < d.cell.high < 90
+
+
+def test_mixed_protocols_are_refused(tmp_path):
+    fake_eval(tmp_path / "a", "scripted", "scripted", 90, 90)
+    fake_eval(tmp_path / "b", "random", "random", 10, 50, n=20)
+    with pytest.raises(ValueError, match="different protocols"):
+        stats.check_protocols(find_results([tmp_path]))
+
+
+# --------------------------------------------------------------------------- the command
+def test_report_on_synthetic_run_folders(tmp_path, compose_cfg):
+    sweep(tmp_path / "sweep", compose_cfg, {"default": [(50, 40), (60, 40)], "A": [(40, 20), (44, 30)],
+                                            "B": [(80, 70), (90, 74)]}, episodes=30)
+    fake_eval(tmp_path / "human_ann", "human", "ann", 48, 50)
+    fake_eval(tmp_path / "human_bob", "human", "bob", 52, 52)
+    cfg = compose_cfg("report", [f"runs=[{tmp_path / 'sweep'},{tmp_path / 'human_ann'},{tmp_path / 'human_bob'}]",
+                                 *REPORT])
+    files = report(cfg, out_dir=tmp_path / "out")
+    with files.table_csv.open() as f:
+        rows = {(r["method"], r["initial_lane"], r["metric"]): r for r in csv.DictReader(f)}
+    b = rows[("B", "non_goal", "goal")]
+    assert (float(b["mean"]), float(b["ci_low"]), float(b["ci_high"])) == (72.0, 70.0, 74.0)
+    assert b["values"] == "70;74" and b["units"] == "seed 0;seed 1" and b["ci_over"] == "seeds"
+    h = rows[("human", "random", "survival")]
+    assert (float(h["mean"]), h["n"], h["units"]) == (50.0, "2", "ann;bob")
+    with files.differences_csv.open() as f:
+        diffs = {(r["a"], r["initial_lane"], r["metric"]): r for r in csv.DictReader(f)}
+    assert diffs[("B", "random", "survival")]["excludes_zero"] == "1"
+    assert diffs[("A", "random", "survival")]["difference"] == "-13.0"
+    md = files.table_md.read_text()
+    assert md.index("| Default |") < md.index("| A |") < md.index("| B |") < md.index("| human |")
+    doc = json.loads(files.report_json.read_text())
+    assert len(doc["sources"]) == 8 and doc["rows"][0]["label"] == "Default"
+    img = cv2.imread(str(files.fig5))
+    assert img is not None and img.shape[1] > 800 and img.std() > 10
+
+
+def test_report_evaluates_runs_without_an_evaluation(tmp_path, compose_cfg):
+    run = fake_run(tmp_path / "sweep", compose_cfg, mode="A", seed=4)
+    cfg = compose_cfg("report", [f"runs=[{tmp_path / 'sweep'}]", *REPORT, "evaluate_missing=true",
+                                 "protocol.episodes=2", "protocol.duration=10", "workers=1", "fig5=false"])
+    files = report(cfg, out_dir=tmp_path / "out")
+    assert (run / "eval" / "eval.json").is_file() and "| A | 1 |" in files.markdown
+    mtime = (run / "eval" / "eval.json").stat().st_mtime_ns
+    report(cfg, out_dir=tmp_path / "out2")  # evaluated under this protocol already: not again
+    assert (run / "eval" / "eval.json").stat().st_mtime_ns == mtime
+
+
+def test_report_needs_evaluations(tmp_path, compose_cfg):
+    with pytest.raises(ValueError, match="runs"):
+        report(compose_cfg("report", REPORT), out_dir=tmp_path)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no evaluation"):
+        report(compose_cfg("report", [f"runs=[{tmp_path / 'empty'}]", *REPORT]), out_dir=tmp_path)
+
+
+# --------------------------------------------------------------------------- figures
+def test_smoothing_and_bands():
+    assert smooth(np.array([1.0, 2.0, 3.0, 4.0]), 2).tolist() == [1.0, 1.5, 2.5, 3.5]
+    assert smooth(np.array([1.0, 3.0]), 1).tolist() == [1.0, 3.0]
+    curves = np.array([[0.0, 10.0], [2.0, 10.0]])
+    lo, hi = band(curves, 0.95, 500, seed=0)
+    assert lo.tolist() == [0.0, 10.0] and hi.tolist() == [2.0, 10.0]
+
+
+def test_fig5_has_a_periodic_panel_when_runs_logged_one(tmp_path, compose_cfg):
+    for seed in (0, 1):
+        run = fake_run(tmp_path, compose_cfg, mode="B", seed=seed, episodes=40)
+        with (run / PERIODIC_CSV).open("w", newline="") as f:
+            w = csv.DictWriter(f, PERIODIC_FIELDS)
+            w.writeheader()
+            for ep in (10, 20, 30):
+                w.writerow({k: ep for k in PERIODIC_FIELDS})
+    runs = find_training_runs([tmp_path])
+    assert [(r.label, r.seed) for r in runs] == [("B", 0), ("B", 1)] and runs[0].periodic is not None
+    path = learning_curves(runs, tmp_path / "fig5.png", window=5, n_resamples=100)
+    assert path is not None and cv2.imread(str(path)).shape[1] == 1800  # three panels at 120 dpi
+    assert learning_curves([], tmp_path / "none.png") is None
+
+
+def test_fig7_strip_and_video_replay_the_evaluated_episodes(tmp_path, compose_cfg, caplog):
+    ev = compose_cfg("evaluate", ["policy=scripted", "protocol.episodes=3", "protocol.duration=40",
+                                  "workers=1", "progress=false", "env.vehicles_count=5"])
+    [result] = evaluate(ev, out_dir=tmp_path / "scripted")
+    cfg = compose_cfg("report", [f"runs=[{tmp_path / 'scripted'}]", *REPORT, "rollouts.rows=[scripted,human]",
+                                 "rollouts.count=2", "rollouts.steps=[0,10,39,80]", "rollouts.fps=20"])
+    with caplog.at_level(logging.INFO):
+        files = report(cfg, out_dir=tmp_path / "out")
+    assert "differs from its evaluation" not in caplog.text  # the replays are the evaluated episodes
+    assert "no evaluation of row human" in caplog.text
+    [strip], [video] = files.strips, files.videos
+    img = cv2.imread(str(strip))
+    assert img is not None and img.std() > 10 and img.shape[1] >= 4 * 120
+    cap = cv2.VideoCapture(str(video))
+    frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    ok, first = cap.read()
+    cap.release()
+    recs = [r for r in result.records() if r.initial_lane == "non_goal"][:2]
+    assert ok and first.std() > 10
+    assert frames == sum(r.steps + 1 + 10 for r in recs)  # every step, and the end held 10 frames
+
+
+def test_protocol_config_matches_the_paper(compose_cfg):
+    p = compose_cfg("evaluate", ["policy=random"]).protocol
+    assert ProtocolConfig(**p) == ProtocolConfig()
+    assert (p.episodes, list(p.vehicles_count), p.duration) == (100, [0, 5], 300)
