@@ -30,7 +30,8 @@ def sweep(root, compose_cfg, scores: dict[str, list[tuple[int, int]]], episodes:
         for seed, (surv, goal) in enumerate(per_seed):
             run = fake_run(root, compose_cfg, mode=mode, seed=seed, episodes=episodes)
             label = {"default": "Default"}.get(mode, mode)
-            fake_eval(run / "eval", label, f"seed {seed}", surv, goal, meta={"kind": "checkpoint", "run": str(run)})
+            fake_eval(run / "eval", label, f"seed {seed}", surv, goal,
+                      meta={"kind": "checkpoint", "run": str(run)})
 
 
 # --------------------------------------------------------------------------- numbers
@@ -61,17 +62,19 @@ def test_pairwise_differences_say_which_intervals_exclude_zero(tmp_path, compose
     sweep(tmp_path, compose_cfg, {"default": [(50, 40), (60, 40)], "B": [(80, 40), (90, 40)],
                                   "A": [(50, 30), (62, 46)]})
     results = find_results([tmp_path])
-    diffs = {(d.a, d.column): d.cell for d in stats.differences(results, [["B", "Default"], ["A", "Default"]])}
+    pairs = [["B", "Default"], ["A", "Default"]]
+    diffs = {(d.a, d.column): d.cell for d in stats.differences(results, pairs)}
     b = diffs[("B", ("random", "survival"))]
     # B - Default: {80, 85, 90} - {50, 55, 60}; the extremes 20 and 40 each have 6.25% > 2.5%
     assert (b.mean, b.low, b.high) == (30.0, 20.0, 40.0) and b.excludes_zero()
     assert diffs[("B", ("random", "goal"))].mean == 0 and not diffs[("B", ("random", "goal"))].excludes_zero()
     a = diffs[("A", ("random", "survival"))]
     assert a.mean == pytest.approx(1.0) and a.low < 0 < a.high and not a.excludes_zero()
-    md = tables.markdown(stats.table(results), stats.differences(results, [["B", "Default"], ["A", "Default"]]))
+    md = tables.markdown(stats.table(results), stats.differences(results, pairs))
     assert "| B \u2212 Default | random survival | +30.0 | [20, 40] | **yes** |" in md
     assert "| A \u2212 Default | random survival | +1.0 |" in md
-    assert "B vs Default: the 95% interval excludes zero for random survival +30.0, non-goal survival +30.0." in md
+    assert ("B vs Default: the 95% interval excludes zero for random survival +30.0, "
+            "non-goal survival +30.0.") in md
     assert "A vs Default:" in md
     # a missing row is left out, not an error
     assert stats.differences(results, [["human", "Default"]]) == []
@@ -98,8 +101,8 @@ def test_report_on_synthetic_run_folders(tmp_path, compose_cfg):
                                             "B": [(80, 70), (90, 74)]}, episodes=30)
     fake_eval(tmp_path / "human_ann", "human", "ann", 48, 50)
     fake_eval(tmp_path / "human_bob", "human", "bob", 52, 52)
-    cfg = compose_cfg("report", [f"runs=[{tmp_path / 'sweep'},{tmp_path / 'human_ann'},{tmp_path / 'human_bob'}]",
-                                 *REPORT])
+    folders = ",".join(str(tmp_path / name) for name in ("sweep", "human_ann", "human_bob"))
+    cfg = compose_cfg("report", [f"runs=[{folders}]", *REPORT])
     files = report(cfg, out_dir=tmp_path / "out")
     with files.table_csv.open() as f:
         rows = {(r["method"], r["initial_lane"], r["metric"]): r for r in csv.DictReader(f)}
