@@ -56,11 +56,12 @@ def records(survived: Sequence[bool], goal: Sequence[bool], lane: str = "random"
             for i, (s, g) in enumerate(zip(survived, goal, strict=True))]
 
 
-def outcome_records(survival: int, goal: int, n: int = 100) -> list[EpisodeRecord]:
+def outcome_records(survival: int, goal: int, n: int = 100,
+                    lanes: Sequence[str] = ("random", "non_goal")) -> list[EpisodeRecord]:
     """``n`` episodes per initial-lane setting with exactly ``survival`` and ``goal`` successes."""
     seeds = scenario_seeds(0, n)
     out = []
-    for lane in ("random", "non_goal"):
+    for lane in lanes:
         out += records([i < survival for i in range(n)], [i < goal for i in range(n)], lane, seeds=seeds)
     return out
 
@@ -69,5 +70,5 @@ def fake_eval(folder: Path, name: str, unit: str, survival: int, goal: int, n: i
               protocol: ProtocolConfig | None = None, meta: dict | None = None) -> EvalResult:
     """An evaluation folder whose scores are ``survival`` and ``goal`` (of ``n``) in both settings."""
     protocol = protocol or ProtocolConfig(episodes=n)
-    return write_result(folder, name, outcome_records(survival, goal, n), protocol,
+    return write_result(folder, name, outcome_records(survival, goal, n, protocol.initial_lanes), protocol,
                         scenario_seeds(protocol.seed, n), {"unit": unit, **(meta or {})})

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import pickle
+import random
 from concurrent.futures import Future
 
 import numpy as np
@@ -21,7 +22,7 @@ from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import N_ACTIONS, action_index
 from memrl.evaluate import evaluate
 from memrl.evaluation import runner
-from memrl.evaluation.periodic import periodic_eval
+from memrl.evaluation.periodic import PERIODIC_CSV, PeriodicEvaluation, periodic_eval
 from memrl.evaluation.policies import DriverActor, GreedyActor, HumanSource
 from memrl.evaluation.protocol import (
     ProtocolConfig,
@@ -315,3 +316,32 @@ def test_periodic_eval_gives_the_scores_of_a_few_greedy_episodes():
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
     assert set(periodic_eval(net, env, episodes=2, seed=1, initial_lanes=["non_goal"])) == \
         {"survival_non_goal", "goal_non_goal", "return_non_goal", "steps_non_goal", "wall_s"}
+
+
+class Logger:
+    def __init__(self) -> None:
+        self.points: list[tuple[str, float, int]] = []
+
+    def log_scalar(self, name, value, step) -> None:
+        self.points.append((name, value, step))
+
+
+def test_periodic_evaluation_as_the_training_loop_would_call_it(tmp_path):
+    torch.manual_seed(0)
+    net, logger = QNetwork(), Logger()
+    pe = PeriodicEvaluation({"every": 3, "episodes": 2}, {"duration": 10}, tmp_path, logger)
+    rng_before = (torch.get_rng_state(), np.random.get_state()[1].copy(), random.getstate())
+    rows = [pe.after_episode(net, ep, 100 * ep) for ep in range(1, 7)]
+    assert [r is not None for r in rows] == [False, False, True, False, False, True]
+    assert torch.equal(rng_before[0], torch.get_rng_state())  # exact resume is not disturbed
+    assert np.array_equal(rng_before[1], np.random.get_state()[1]) and rng_before[2] == random.getstate()
+    with (tmp_path / PERIODIC_CSV).open() as f:
+        table = list(csv.DictReader(f))
+    assert [int(r["episode"]) for r in table] == [3, 6] and [int(r["env_steps"]) for r in table] == [300, 600]
+    assert float(table[0]["survival_non_goal"]) == rows[2]["survival_non_goal"]
+    assert ("eval/goal_random", rows[5]["goal_random"], 600) in logger.points
+    pe.rewind(4)
+    with (tmp_path / PERIODIC_CSV).open() as f:
+        assert [int(r["episode"]) for r in csv.DictReader(f)] == [3]
+    off = PeriodicEvaluation(None, {}, tmp_path / "off")
+    assert off.after_episode(net, 3, 300) is None and not (tmp_path / "off").exists()

@@ -192,3 +192,17 @@ def test_protocol_config_matches_the_paper(compose_cfg):
     p = compose_cfg("evaluate", ["policy=random"]).protocol
     assert ProtocolConfig(**p) == ProtocolConfig()
     assert (p.episodes, list(p.vehicles_count), p.duration) == (100, [0, 5], 300)
+
+
+def test_rows_evaluated_on_fewer_settings_still_compare(tmp_path):
+    fake_eval(tmp_path / "a", "scripted", "scripted", 90, 90)
+    human = ProtocolConfig(initial_lanes=["random"])
+    fake_eval(tmp_path / "h", "human", "ann", 50, 50, protocol=human)
+    results = find_results([tmp_path])
+    stats.check_protocols(results)  # same scenes for the random starts: comparable
+    rows = {r.label: r for r in stats.table(results)}
+    assert set(rows["scripted"].cells) == set(stats.COLUMNS)
+    assert set(rows["human"].cells) == {("random", "survival"), ("random", "goal")}
+    md = tables.markdown(list(rows.values()), [])
+    [line] = [x for x in md.splitlines() if x.startswith("| human |")]
+    assert line.startswith("| human | 1 | 50.0 [") and line.endswith("|  |  |")

@@ -10,11 +10,13 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from memrl.dqn.records import CsvTable
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import INITIAL_LANES, ProtocolConfig, protocol_env, scenario_seeds, score
 from memrl.evaluation.runner import Job, run_jobs
@@ -77,3 +79,41 @@ def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, epis
                     f"return_{lane}": s.mean_return, f"steps_{lane}": s.mean_steps})
     out["wall_s"] = time.perf_counter() - start
     return out
+
+
+class PeriodicEvaluation:
+    """Everything the training loop needs: when to evaluate, the CSV row, the logger points.
+
+    Args:
+        cfg: the train config's ``eval`` node (:class:`PeriodicEvalConfig` keys; None: off).
+        env_cfg: the training env config.
+        run_dir: the run folder; rows go to ``eval_periodic.csv`` there.
+        logger: a TorchRL logger (``log_scalar``) or None.
+    """
+
+    def __init__(self, cfg: Mapping[str, Any] | DictConfig | None, env_cfg: Mapping[str, Any] | DictConfig,
+                 run_dir: Path, logger: Any | None = None) -> None:
+        values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg or {})
+        self.cfg = PeriodicEvalConfig(**values)  # type: ignore[arg-type]
+        if self.cfg.every < 0 or self.cfg.episodes < 1:
+            raise ValueError(f"config 'eval': need every >= 0 and episodes >= 1, got {self.cfg}")
+        self.env_cfg, self.logger = env_cfg, logger
+        self.table = CsvTable(run_dir / PERIODIC_CSV, PERIODIC_FIELDS) if self.cfg.every else None
+
+    def after_episode(self, qnet: nn.Module, episodes: int, env_steps: int) -> dict[str, float] | None:
+        """Evaluate when ``episodes`` (done so far) is a multiple of ``every``; returns the row."""
+        if self.table is None or episodes % self.cfg.every:
+            return None
+        metrics = periodic_eval(qnet, self.env_cfg, self.cfg.episodes, self.cfg.seed,
+                                initial_lanes=self.cfg.initial_lanes, batch=self.cfg.batch)
+        row = {"episode": episodes, "env_steps": env_steps, **{k: round(v, 4) for k, v in metrics.items()}}
+        self.table.append({k: row.get(k, "") for k in PERIODIC_FIELDS})
+        if self.logger is not None:
+            for key, value in metrics.items():
+                self.logger.log_scalar(f"eval/{key}", float(value), step=env_steps)
+        return metrics
+
+    def rewind(self, episodes: int) -> None:
+        """After a resume: keep the rows of evaluations made up to episode ``episodes``."""
+        if self.table is not None:
+            self.table.truncate(sum(int(r["episode"]) <= episodes for r in self.table.rows()))
