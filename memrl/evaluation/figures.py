@@ -61,7 +61,7 @@ def find_training_runs(paths: Sequence[str | Path]) -> list[Curves]:
         found += [p] if (p / "episodes.csv").is_file() and (p / "config.yaml").is_file() else \
             sorted(f.parent for f in p.glob("**/episodes.csv") if (f.parent / "config.yaml").is_file())
     out = []
-    for run in dict.fromkeys(found):
+    for run in dict.fromkeys(f.resolve() for f in found):
         cfg = run_config(run)
         if "mode" not in cfg:  # not a training run (e.g. a dataset or an evaluation folder)
             continue

@@ -144,7 +144,7 @@ def find_runs(paths: str | Path | Sequence[str | Path]) -> list[Path]:
             runs += sorted(f.parent.parent for f in p.glob("**/checkpoints/final.pt"))
     if not runs:
         raise FileNotFoundError(f"policy 'run': no finished training run (checkpoints/final.pt) in {items}")
-    return sorted(dict.fromkeys(runs))
+    return sorted(dict.fromkeys(r.resolve() for r in runs))
 
 
 def run_config(run: Path) -> dict[str, Any]:

@@ -98,4 +98,4 @@ def find_results(paths: list[str | Path]) -> list[EvalResult]:
         if not p.exists():
             raise FileNotFoundError(f"report 'runs': no such folder {p}")
         found += [p] if (p / EVAL_JSON).is_file() else sorted(f.parent for f in p.glob(f"**/{EVAL_JSON}"))
-    return [read_result(f) for f in dict.fromkeys(found)]
+    return [read_result(f) for f in dict.fromkeys(f.resolve() for f in found)]
