@@ -7,6 +7,7 @@ from hydra.core.config_store import ConfigStore
 from memrl.control.config import DeployConfig
 from memrl.dqn.config import AgentConfig, BufferConfig, ModeConfig
 from memrl.envs.config import LaneChangeConfig
+from memrl.evaluation.periodic import PeriodicEvalConfig
 from memrl.evaluation.protocol import ProtocolConfig
 
 
@@ -18,5 +19,6 @@ def register_configs() -> None:
     cs.store(group="agent", name="dqn_schema", node=AgentConfig)
     cs.store(group="buffer", name="buffer_schema", node=BufferConfig)
     cs.store(group="protocol", name="protocol_schema", node=ProtocolConfig)
+    cs.store(group="eval_schema", name="base", node=PeriodicEvalConfig, package="eval")
     # A group of its own, so that `+mode=A|B` can still be added on top of the typed node.
     cs.store(group="mode_schema", name="base", node=ModeConfig, package="mode")

@@ -40,8 +40,8 @@ def preview(cfg: DictConfig, out_dir: Path) -> PreviewFiles:
     ``observations.png``: one row per captured step, the 4 stacked grayscale frames the network
     receives (oldest left). ``scene.png``: the full-scene pictures at the same steps.
     """
-    if cfg.policy not in ("idle", "random"):
-        raise ValueError(f"preview 'policy': expected idle or random, got {cfg.policy!r}")
+    if cfg.driver not in ("idle", "random"):
+        raise ValueError(f"preview 'driver': expected idle or random, got {cfg.driver!r}")
     env = make_env(cfg.env, seed=cfg.seed, render_mode="rgb_array")
     gen = torch.Generator().manual_seed(int(cfg.seed))
     wanted = sorted(int(s) for s in cfg.steps)
@@ -53,7 +53,7 @@ def preview(cfg: DictConfig, out_dir: Path) -> PreviewFiles:
             obs_rows.append([cv2.resize(f, None, fx=cfg.scale, fy=cfg.scale,
                                         interpolation=cv2.INTER_NEAREST) for f in frames])
             scenes.append(env.base_env.render())
-        action = IDLE if cfg.policy == "idle" else int(torch.randint(N_ACTIONS, (1,), generator=gen))
+        action = IDLE if cfg.driver == "idle" else int(torch.randint(N_ACTIONS, (1,), generator=gen))
         td["action"] = torch.tensor(action)
         td = env.step(td)
         if td["next", "done"].item():

@@ -12,7 +12,7 @@ from memrl.preview import preview
 
 
 def test_preview_writes_non_blank_pngs(compose_cfg, tmp_path):
-    cfg = compose_cfg("preview", ["steps=[0,5]", "policy=random"])
+    cfg = compose_cfg("preview", ["steps=[0,5]", "driver=random"])
     files = preview(cfg, tmp_path)
     obs = cv2.imread(str(files.observations), cv2.IMREAD_GRAYSCALE)
     scene = cv2.imread(str(files.scene))
@@ -21,8 +21,8 @@ def test_preview_writes_non_blank_pngs(compose_cfg, tmp_path):
 
 
 def test_preview_rejects_unknown_policy(compose_cfg, tmp_path):
-    with pytest.raises(ValueError, match="policy"):
-        preview(compose_cfg("preview", ["policy=fast"]), tmp_path)
+    with pytest.raises(ValueError, match="driver"):
+        preview(compose_cfg("preview", ["driver=fast"]), tmp_path)
 
 
 def test_bench_env_measures_both_envs_and_writes_json(compose_cfg, tmp_path):

@@ -165,3 +165,11 @@ def test_finished_run_loads_as_a_greedy_policy(compose_cfg, tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ckpt.CheckpointError, match="bad.pt"):
         load_policy(str(tmp_path / "bad.pt"))
+
+
+def test_periodic_evaluation_rows_during_training(compose_cfg, tmp_path):
+    cfg = compose_cfg("train", TINY + ["total_episodes=2", "eval.every=2", "eval.episodes=2"])
+    train(cfg, tmp_path)
+    evals = rows(tmp_path / "eval_periodic.csv")
+    assert [int(r["episode"]) for r in evals] == [2]
+    assert 0 <= float(evals[0]["survival_random"]) <= 100

@@ -35,6 +35,7 @@ from memrl.dqn.records import RunRecords
 from memrl.dqn.stage1 import Stage1Progress, agreement, split_demos, stop_reason
 from memrl.envs.torchrl_env import make_env
 from memrl.envs.vehicles import N_ACTIONS
+from memrl.evaluation.periodic import PeriodicEvaluation
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +102,7 @@ class Trainer:
         if self.mode in ("A", "B") and demos is None:
             raise ValueError(f"mode {self.mode} needs prior knowledge (demos)")
         self.records = RunRecords(out_dir, logger)
+        self.periodic = PeriodicEvaluation(cfg.get("eval"), cfg.env, out_dir, logger)
         self._build_stage()
         self._acc: dict[str, list[float]] = {"loss": [], "demo": []}
         self._recent: deque[dict[str, Any]] = deque(maxlen=20)
@@ -163,6 +165,7 @@ class Trainer:
         self._recent = deque(state["recent"], maxlen=20)
         ckpt.set_rng_state(state["rng"])
         self.records.rewind(self.counters.episodes, self.counters.update_rows)
+        self.periodic.rewind(self.counters.episodes)
         self._restore_pool()
         self.resumed_from = self.counters.episodes
         log.info("resumed %s at stage %s: %d episodes, %d frames, %d updates", where,
@@ -296,6 +299,7 @@ class Trainer:
         every = int(self.cfg.self_play_every or 0)
         if every and c.episodes % every == 0:
             self._snapshot_to_pool()
+        self.periodic.after_episode(self.learner.qnet, c.episodes, c.frames)
 
     # ------------------------------------------------------------------ driver
     def _budget_left(self) -> bool:
