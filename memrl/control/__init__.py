@@ -11,6 +11,10 @@ the car in the scene the agent sees. One idea per module:
 * :mod:`memrl.control.sensors`: GNSS position, wheel speed and yaw-rate gyro with noise and bias.
 * :mod:`memrl.control.estimator`: the EKF.
 * :mod:`memrl.control.tracking`: one control period of PID + vehicle + sensors + EKF.
-* :mod:`memrl.control.runner`: lane-change episodes through the env, metrics.
+* :mod:`memrl.control.episode`: one lane-change episode through the env (true state in the
+  env, estimated state shown to the policy).
+* :mod:`memrl.control.metrics`: success, overshoot, tracking and estimate-vs-raw errors.
+* :mod:`memrl.control.baseline`: the same seeds in the plain simulator, for reference.
+* :mod:`memrl.control.response`: step responses of the PID loops (the documented figures).
 * :mod:`memrl.control.plot`: the PNG of trajectory, commands and tracked values.
 """
