@@ -6,6 +6,7 @@ import json
 import time
 
 import pytest
+from omegaconf import OmegaConf
 
 from memrl.checkpoint import GreedyQPolicy
 from memrl.data.demos import ensure_example_demos, load_demos
@@ -18,7 +19,7 @@ from memrl.modules.policy import PolicyModule
 def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
     cfg = compose_cfg("train", [
         "+mode=B", "progress=false", "logger=none", f"paths.data_dir={tmp_path / 'data'}",
-        "mode.stage1.max_updates=3000", "mode.stage1.check_every=250",
+        "mode.stage1.max_updates=2000", "mode.stage1.check_every=250",
         "mode.stage1.criterion=agreement", "mode.stage1.agreement=0.95",
     ])
     path = ensure_example_demos(cfg.env, tmp_path / "data", episodes=20)
@@ -29,7 +30,8 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
     trainer.run_stage1()
     wall = time.perf_counter() - start
     policy = GreedyQPolicy(trainer.learner.qnet)
-    env = make_env({**dict(cfg.env), "vehicles_count": [0, 5]}, seed=0)
+    env = make_env({**OmegaConf.to_container(cfg.env, resolve=True), "vehicles_count": [0, 5]},
+                   seed=0)
     module = PolicyModule(policy, unwrap(env))
     survived = reached = 0
     for episode in range(20):

@@ -68,3 +68,9 @@ def test_hydra_env_group_rejects_a_misspelt_key(compose_cfg):
     assert env.reset()["pixels"].shape == (4, 84, 84)
     with pytest.raises(Exception, match="lane_cont"):
         compose_cfg("preview", ["env.lane_cont=3"])
+
+
+def test_a_dict_holding_hydra_nodes_is_accepted(compose_cfg):
+    cfg = compose_cfg("preview")
+    env = make_env({**dict(cfg.env), "vehicles_count": [0, 5]}, seed=0)
+    assert env.reset()["pixels"].shape == (4, 84, 84)

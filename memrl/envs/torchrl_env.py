@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import (
     CatFrames,
@@ -31,10 +31,10 @@ def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]
     """Plain, checked env config dict from a Hydra node or mapping (None: defaults)."""
     if env_cfg is None:
         return {}
-    if isinstance(env_cfg, DictConfig):
-        values: dict[str, Any] = OmegaConf.to_container(env_cfg, resolve=True)  # type: ignore[assignment]
-    else:
-        values = dict(env_cfg)
+    # Plain containers all the way down, also for a dict holding Hydra nodes.
+    values: dict[str, Any] = {
+        k: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig | ListConfig) else v
+        for k, v in env_cfg.items()}
     validate_env_config(values)  # fail early, naming the key
     return values
 
