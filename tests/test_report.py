@@ -73,9 +73,10 @@ def test_pairwise_differences_say_which_intervals_exclude_zero(tmp_path, compose
     md = tables.markdown(stats.table(results), stats.differences(results, pairs))
     assert "| B \u2212 Default | random survival | +30.0 | [20, 40] | **yes** |" in md
     assert "| A \u2212 Default | random survival | +1.0 |" in md
-    assert ("B vs Default: the 95% interval excludes zero for random survival +30.0, "
+    assert ("B vs Default (2 vs 2 units): the 95% interval excludes zero for random survival +30.0, "
             "non-goal survival +30.0.") in md
-    assert "A vs Default:" in md
+    assert "A vs Default (2 vs 2 units): no difference is distinguishable from zero at 95%." in md
+    assert "these intervals are optimistic" in md
     # a missing row is left out, not an error
     assert stats.differences(results, [["human", "Default"]]) == []
 

@@ -113,7 +113,7 @@ def one_thread() -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def run_job(actor: Actor, job: Job, batch: int = 16, frame_stack: int = 4,
+def run_job(actor: Actor, job: Job, batch: int = 8, frame_stack: int = 4,
             hook: StepHook | None = None) -> JobResult:
     """Run the job's episodes, up to ``batch`` at a time; a finished slot takes the next one."""
     with one_thread():
@@ -187,7 +187,7 @@ def split(jobs: Sequence[Job], parts: int) -> list[Job]:
             for j in jobs for i in range(0, len(j.episodes), size)]
 
 
-def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int = 16,
+def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int = 8,
              progress: bool = False, desc: str = "evaluate") -> JobResult:
     """Run all jobs, in ``workers`` processes when the actor allows it; records come back sorted
     by (initial lane, episode index), whatever the split."""

@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 
 def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
                        env_cfg: Mapping[str, Any] | DictConfig | None = None,
-                       out_dir: Path | None = None, workers: int = 1, batch: int = 16,
+                       out_dir: Path | None = None, workers: int = 1, batch: int = 8,
                        progress: bool = False) -> EvalResult:
     """Run the protocol's episodes for ``cand`` and write ``eval.json`` + ``episodes.csv``.
 

@@ -63,6 +63,9 @@ class Difference:
     b: str
     column: tuple[str, str]
     cell: Cell
+    n_a: int = 0
+    """Units (seeds, people) of row ``a``."""
+    n_b: int = 0
 
 
 @dataclass
@@ -171,5 +174,6 @@ def differences(results: Sequence[EvalResult], pairs: Sequence[Sequence[str]],
                 over = "episodes"
             low, high = _interval(xs, _mean_diff, cfg, key=10_000 + 100 * k + j)
             diff = float(np.mean(va) - np.mean(vb))
-            out.append(Difference(a, b, (lane, metric), Cell([diff], diff, low, high, over)))
+            out.append(Difference(a, b, (lane, metric), Cell([diff], diff, low, high, over),
+                                  len(ra), len(rb)))
     return out

@@ -61,12 +61,17 @@ def verdict(diffs: Sequence[Difference], pct: str) -> str:
     """One sentence per comparison: which columns' intervals exclude zero."""
     out = []
     for a, b in dict.fromkeys((d.a, d.b) for d in diffs):
-        sure = [d for d in diffs if (d.a, d.b) == (a, b) and d.cell.excludes_zero()]
+        mine = [d for d in diffs if (d.a, d.b) == (a, b)]
+        sure = [d for d in mine if d.cell.excludes_zero()]
+        n = f"{a} vs {b} ({mine[0].n_a} vs {mine[0].n_b} units)"
         if sure:
             parts = ", ".join(f"{column_name(d.column)} {d.cell.mean:+.1f}" for d in sure)
-            out.append(f"{a} vs {b}: the {pct} interval excludes zero for {parts}.")
+            out.append(f"{n}: the {pct} interval excludes zero for {parts}.")
         else:
-            out.append(f"{a} vs {b}: no difference is distinguishable from zero at {pct}.")
+            out.append(f"{n}: no difference is distinguishable from zero at {pct}.")
+    if any(min(d.n_a, d.n_b) < 5 and d.cell.over == "seeds" for d in diffs):
+        out.append("With so few seeds these intervals are optimistic; more seeds, not more "
+                   "evaluation episodes, would make them trustworthy.")
     return " ".join(out)
 
 
@@ -83,8 +88,8 @@ def write_csv(rows: Sequence[Row], diffs: Sequence[Difference], table_path: Path
                             ";".join(_num(v) for v in c.values), ";".join(map(str, c.episodes))])
     with diff_path.open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["a", "b", "initial_lane", "metric", "difference", "ci_low", "ci_high", "ci_over",
-                    "excludes_zero"])
+        w.writerow(["a", "b", "n_a", "n_b", "initial_lane", "metric", "difference", "ci_low", "ci_high",
+                    "ci_over", "excludes_zero"])
         for d in diffs:
-            w.writerow([d.a, d.b, *d.column, round(d.cell.mean, 4), round(d.cell.low, 4),
+            w.writerow([d.a, d.b, d.n_a, d.n_b, *d.column, round(d.cell.mean, 4), round(d.cell.low, 4),
                         round(d.cell.high, 4), d.cell.over, int(d.cell.excludes_zero())])
