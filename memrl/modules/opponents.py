@@ -87,8 +87,11 @@ class LearnedCarController(CarController):
 
     @torch.no_grad()
     def q_values(self, model_index: torch.Tensor, stacks: torch.Tensor) -> torch.Tensor:
-        """Q-values ``[N, 9]``: car i through network ``model_index[i]``, in one vmapped pass."""
+        """Q-values ``[N, 9]``: car i through network ``model_index[i]``, in one pass (vmapped
+        over the pool's networks when the cars use more than one of them)."""
         self.forward_calls += 1
+        if bool((model_index == model_index[0]).all()):  # one network: a plain batched forward
+            return self.networks[int(model_index[0])](stacks)
 
         def run(params: dict, buffers: dict, x: torch.Tensor) -> torch.Tensor:
             return functional_call(self._skeleton, (params, buffers), (x,))
