@@ -190,8 +190,10 @@ def test_fig7_strip_and_video_replay_the_evaluated_episodes(tmp_path, compose_cf
 
 
 def test_protocol_config_matches_the_paper(compose_cfg):
+    from memrl.evaluation.protocol import check_protocol
+
     p = compose_cfg("evaluate", ["policy=random"]).protocol
-    assert ProtocolConfig(**p) == ProtocolConfig()
+    assert check_protocol(p) == ProtocolConfig()  # constant traffic from the opponent group
     assert (p.episodes, list(p.vehicles_count), p.duration) == (100, [0, 5], 300)
 
 
@@ -207,3 +209,11 @@ def test_rows_evaluated_on_fewer_settings_still_compare(tmp_path):
     md = tables.markdown(list(rows.values()), [])
     [line] = [x for x in md.splitlines() if x.startswith("| human |")]
     assert line.startswith("| human | 1 | 50.0 [") and line.endswith("|  |  |")
+
+
+def test_evaluate_takes_its_traffic_from_the_opponent_group(compose_cfg):
+    from memrl.evaluation.protocol import check_protocol
+
+    p = compose_cfg("evaluate", ["policy=random", "opponent=mixed", "env.opponent.pool=[x]"]).protocol
+    assert check_protocol(p).opponent["type"] == "mixed"
+    assert check_protocol(p).opponent["pool"] == ["x"]

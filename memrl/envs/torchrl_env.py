@@ -33,7 +33,7 @@ def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]
         return {}
     # Plain containers all the way down, also for a dict holding Hydra nodes.
     values: dict[str, Any] = {
-        k: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig | ListConfig) else v
+        str(k): OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig | ListConfig) else v
         for k, v in env_cfg.items()}
     validate_env_config(values)  # fail early, naming the key
     return values

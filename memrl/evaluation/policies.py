@@ -172,8 +172,12 @@ class CheckpointSource(PolicySource):
             net, ckpt_env = load_qnet(run)
             cfg = run_config(run)
             mode = str(cfg.get("mode", {}).get("name", "default"))
+            opponent = (cfg.get("env") or {}).get("opponent", "constant")
+            traffic = opponent.get("type", "constant") if isinstance(opponent, dict) else str(opponent)
+            # Rows are grouped by the traffic the agent was trained among: "A (mixed)".
+            label = MODE_LABELS.get(mode, mode) + ("" if traffic == "constant" else f" ({traffic})")
             out.append(Candidate(
-                name=self.name or MODE_LABELS.get(mode, mode), actor=GreedyActor(net),
+                name=self.name or label, actor=GreedyActor(net),
                 env=cfg.get("env") or ckpt_env, out_dir=run / self.subdir,
                 meta={"kind": "checkpoint", "run": str(run), "mode": mode,
                       "train_seed": cfg.get("seed"), "unit": f"seed {cfg.get('seed')}"}))

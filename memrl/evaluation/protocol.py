@@ -43,8 +43,9 @@ class ProtocolConfig:
     """Other cars per episode, drawn uniformly in [low, high] (inclusive)."""
     duration: int = 300
     """Action steps per episode [steps]; a survivor drives all of them."""
-    opponent: str = "constant"
-    """Controller of the other cars (constant-speed cars in the paper's evaluation)."""
+    opponent: Any = "constant"
+    """Who drives the other cars: a type name, or the full ``env.opponent`` node (e.g. learned
+    traffic from a pool); constant-speed cars in the paper's evaluation."""
 
 
 class ProtocolError(ValueError):
@@ -56,8 +57,12 @@ def check_protocol(cfg: ProtocolConfig | Mapping[str, Any] | DictConfig) -> Prot
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     p = cfg if isinstance(cfg, ProtocolConfig) else ProtocolConfig(**dict(cfg))  # type: ignore[arg-type]
+    opponent = dict(p.opponent) if isinstance(p.opponent, Mapping) else {"type": str(p.opponent)}
+    if opponent.get("type") == "constant":
+        opponent = {"type": "constant"}  # the other keys mean nothing for constant cars
     p = ProtocolConfig(int(p.episodes), int(p.seed), [str(x) for x in p.initial_lanes],
-                       [int(x) for x in p.vehicles_count], int(p.duration), str(p.opponent))
+                       [int(x) for x in p.vehicles_count], int(p.duration),
+                       opponent["type"] if len(opponent) == 1 else opponent)
     if p.episodes < 1:
         raise ProtocolError(f"protocol 'episodes': need >= 1, got {p.episodes}")
     bad = [x for x in p.initial_lanes if x not in INITIAL_LANES]
