@@ -71,3 +71,21 @@ def test_actor_acts_with_the_updated_online_weights():
     after = learner.actor(td.clone())["action_value"].detach()
     assert not torch.allclose(before, after)
     assert torch.allclose(after, learner.q_values(td["pixels"]))
+
+
+def test_margin_loss_on_demo_items_matches_a_hand_computation():
+    torch.manual_seed(0)
+    learner = Learner(AgentConfig())
+    td = batch()
+    td["is_demo"] = torch.tensor([True, False, True, False, False, True])
+    base = learner.loss(td).detach()
+    learner.margin_weight, learner.margin = 2.0, 0.8
+    with torch.no_grad():
+        q = learner.qnet(td["pixels"][td["is_demo"]])
+        a = td["action"][td["is_demo"]]
+        bonus = torch.full_like(q, 0.8)
+        bonus[torch.arange(3), a] = 0.0
+        expected = (q + bonus).max(-1).values - q[torch.arange(3), a]
+        got = learner.loss(td)
+    assert (expected >= 0).all()
+    assert torch.allclose(got, base + 2.0 * expected.mean(), atol=1e-6)

@@ -68,6 +68,12 @@ class Stage1Config:
     """Relative loss improvement under which the loss counts as flat."""
     criterion: str = "agreement_or_plateau"
     """agreement | plateau | agreement_or_plateau | max_updates."""
+    margin_weight: float = 1.0
+    """Weight of DQfD's large-margin loss on the demos in stage 1 (0: eq. (1) alone, the
+    paper's literal reading; with it alone the greedy agent drifts away from the demo actions,
+    see the README)."""
+    margin: float = 0.8
+    """Margin of that loss [Q units]."""
 
 
 @dataclass

@@ -36,9 +36,25 @@ class Learner:
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.lr)
         self.updates = 0
 
+    margin_weight: float = 0.0
+    """Weight of the large-margin loss on demo transitions (0: eq. (1) only); set per stage."""
+    margin: float = 0.8
+    """Margin [Q units] by which the demo action must beat every other action."""
+
     def loss(self, batch: TensorDictBase) -> torch.Tensor:
-        """Eq. (1) on a batch (differentiable)."""
-        return 0.5 * self.loss_module(batch)["loss"]
+        """Eq. (1) on a batch (differentiable), plus, when ``margin_weight > 0``, DQfD's
+        large-margin loss on its demo items: max_a [Q(s, a) + margin * (a != a_demo)] - Q(s, a_demo)
+        (Hester et al., 2018), which makes the greedy action reproduce the demonstrations."""
+        loss = 0.5 * self.loss_module(batch)["loss"]
+        if self.margin_weight > 0 and "is_demo" in batch.keys():
+            demo = batch["is_demo"].reshape(-1)
+            if bool(demo.any()):
+                q = self.qnet(batch["pixels"][demo])
+                a = batch["action"][demo].reshape(-1, 1)
+                margins = torch.full_like(q, self.margin).scatter_(-1, a, 0.0)
+                excess = (q + margins).max(-1).values - q.gather(-1, a).squeeze(-1)
+                loss = loss + self.margin_weight * excess.mean()
+        return loss
 
     def update(self, batch: TensorDictBase) -> float:
         """One gradient step and a target-update tick; returns the loss value."""

@@ -126,6 +126,8 @@ class Trainer:
                                                     batch, sampling=str(m.sampling))
         elif self.counters.stage == "B1":
             assert self.demos is not None
+            self.learner.margin_weight = float(m.stage1.margin_weight)
+            self.learner.margin = float(m.stage1.margin)
             train, self.held_out = split_demos(self.demos, float(m.stage1.holdout_fraction),
                                                int(self.cfg.seed))
             self.buffer = demo_buffer(train, batch)
@@ -236,6 +238,7 @@ class Trainer:
         self.learner.sync_target()
         self.learner.reset_optimizer()
         self.counters.stage = "B2"
+        self.learner.margin_weight = 0.0  # stage 2 trains as Default
         self._build_stage()
         log.info("stage 1 done (%s); stage 2 from %s", self.stage1.stop_reason, path)
 
