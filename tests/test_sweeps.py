@@ -51,3 +51,23 @@ def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     jobs = job_dirs(tmp_path)
     assert len(jobs) == 2 and all((j / "summary.json").exists() for j in jobs)
+
+
+def test_mode_by_opponent_grid_makes_eight_runs(tmp_path):
+    import torch
+
+    from memrl.checkpoint import save_qnet
+    from memrl.modules.qnet import QNetwork
+
+    torch.manual_seed(0)
+    pool = save_qnet(tmp_path / "past" / "final.pt", QNetwork(), {})
+    proc = run(["-m", "+mode=A,B", "opponent=constant,mixed", "seed=0,1", "+experiment=smoke",
+                f"env.opponent.pool=[{pool}]", *SMALL], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    jobs = job_dirs(tmp_path)
+    assert len(jobs) == 8 and not any((j / "error.txt").exists() for j in jobs)
+    import yaml
+
+    grid = sorted((c["mode"]["name"], c["env"]["opponent"]["type"], c["seed"]) for c in
+                  (yaml.safe_load((j / "config.yaml").read_text()) for j in jobs))
+    assert grid == sorted((m, o, s) for m in "AB" for o in ("constant", "mixed") for s in (0, 1))
