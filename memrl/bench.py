@@ -31,8 +31,37 @@ def _opponents(cfg: DictConfig) -> dict[str, Any]:
     return env_speed.run_opponents(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
 
 
-BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env,
-                                                                 "opponents": _opponents}
+def _learner(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import learner_speed
+
+    return learner_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
+def _memory(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import replay_memory
+
+    return replay_memory.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
+def _e2e(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import e2e
+
+    return e2e.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
+def _stage1(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import stage1_check
+
+    values = OmegaConf.to_container(cfg, resolve=True)
+    values["margin_weights"] = tuple(values["margin_weights"])  # type: ignore[index]
+    return stage1_check.run(**values)  # type: ignore[arg-type]
+
+
+BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "stage1": _stage1,
+                                                                 "opponents": _opponents,
+                                                                 "learner": _learner,
+                                                                 "memory": _memory,
+                                                                 "e2e": _e2e}
 
 
 def machine() -> dict[str, Any]:
@@ -44,6 +73,7 @@ def machine() -> dict[str, Any]:
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),
+        "load_average": list(os.getloadavg()),  # 1, 5, 15 min, at the start of the run
     }
 
 
@@ -57,6 +87,7 @@ def bench(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
         log.info("running benchmark %s", name)
         result[name] = BENCHMARKS[name](cfg[name])
         print(json.dumps({name: result[name]}, indent=2))
+    result["machine"]["load_average_end"] = list(os.getloadavg())
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "bench.json").write_text(json.dumps(result, indent=2))
     log.info("wrote %s", out_dir / "bench.json")

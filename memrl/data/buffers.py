@@ -9,6 +9,11 @@
   ``proportional`` draws the demo count from a binomial with the demos' share of the stored
   transitions, which is exactly uniform sampling over one storage holding both.
 - Mode B stage 1: a buffer holding only prior knowledge.
+
+With ``compact=True`` (the default) every buffer stores each 84x84 frame once
+(:class:`memrl.data.frame_store.FrameStackStorage`: a frame ring plus per-transition frame
+refs; stacks are rebuilt when sampled); ``compact=False`` stores both full stacks per
+transition (TorchRL's plain ``LazyTensorStorage``). Samples are the same either way.
 """
 
 from __future__ import annotations
@@ -19,16 +24,31 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.offline_to_online import OfflineToOnlineReplayBuffer
+from torchrl.data.replay_buffers.storages import Storage
+
+from memrl.data.frame_store import FrameStackStorage, count_frames
 
 
-def agent_buffer(capacity: int, batch_size: int) -> TensorDictReplayBuffer:
+def agent_storage(capacity: int, compact: bool = True) -> Storage:
+    """Storage of ``capacity`` agent transitions: a frame ring (each frame once) or full stacks."""
+    return FrameStackStorage(capacity) if compact else LazyTensorStorage(capacity)
+
+
+def agent_buffer(capacity: int, batch_size: int, compact: bool = True) -> TensorDictReplayBuffer:
     """FIFO replay of the agent's own transitions, uniform sampling."""
-    return TensorDictReplayBuffer(storage=LazyTensorStorage(capacity), batch_size=batch_size)
+    return TensorDictReplayBuffer(storage=agent_storage(capacity, compact), batch_size=batch_size)
 
 
-def demo_buffer(demos: TensorDictBase, batch_size: int | None = None) -> ReplayBuffer:
-    """A buffer filled with ``demos`` (its capacity is their count: nothing else gets in)."""
-    rb = ReplayBuffer(storage=LazyTensorStorage(len(demos)), batch_size=batch_size)
+def demo_buffer(demos: TensorDictBase, batch_size: int | None = None,
+                compact: bool = True) -> ReplayBuffer:
+    """A buffer filled with ``demos`` (its capacity is their count: nothing else gets in).
+
+    Demo datasets keep their full-stack format on disk; a compact buffer converts them on
+    entry, with a ring of exactly the frames they need (they are written once).
+    """
+    storage: Storage = (FrameStackStorage(len(demos), frames=count_frames(demos)) if compact
+                        else LazyTensorStorage(len(demos)))
+    rb = ReplayBuffer(storage=storage, batch_size=batch_size)
     rb.extend(demos)
     return rb
 
@@ -43,17 +63,19 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
         demo_fraction: share of the capacity reserved for demos.
         batch_size: default batch size.
         sampling: ``stratified`` or ``proportional``.
+        compact: store each frame once (both parts), see :mod:`memrl.data.frame_store`.
     """
 
     def __init__(self, demos: TensorDictBase, capacity: int, demo_fraction: float,
-                 batch_size: int, sampling: str = "stratified") -> None:
+                 batch_size: int, sampling: str = "stratified", compact: bool = True) -> None:
         if sampling not in ("stratified", "proportional"):
             raise ValueError(f"sampling must be stratified or proportional, got {sampling!r}")
         n_demo = int(round(demo_fraction * capacity))
         if len(demos) == 0:
             raise ValueError("mode A needs at least one prior-knowledge transition")
         kept = demos[: min(n_demo, len(demos))]
-        super().__init__(demo_buffer(kept), online_capacity=capacity - n_demo,
+        super().__init__(demo_buffer(kept, compact=compact),
+                         online_storage=agent_storage(capacity - n_demo, compact),
                          offline_fraction=demo_fraction, batch_size=batch_size)
         self.sampling = sampling
         self.capacity = capacity

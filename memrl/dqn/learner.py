@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import torch
@@ -12,6 +13,32 @@ from torchrl.objectives import DQNLoss, HardUpdate
 from memrl.dqn.config import AgentConfig
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.modules.qnet import QNetwork, make_q_actor
+
+
+def _option(cfg: Any, key: str, default: Any) -> Any:
+    """``cfg.key`` for a dataclass or a DictConfig that may predate the key."""
+    return getattr(cfg, key, default) if not hasattr(cfg, "get") else cfg.get(key, default)
+
+
+def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32)) -> bool:
+    """``torch.compile`` the network's forward in place, then run it once per batch size, with
+    and without gradients; on any failure (no C++ compiler, an unsupported op) warn and put the
+    eager forward back. Returns whether the network stays compiled."""
+    try:
+        qnet.compile(dynamic=False)
+        for n in batch_sizes:
+            x = torch.zeros(n, 4, 84, 84, dtype=torch.uint8)
+            qnet(x).sum().backward()
+            with torch.no_grad():
+                qnet(x)
+        qnet.zero_grad(set_to_none=True)
+        return True
+    except Exception as err:  # inductor raises many kinds; all mean "run eager"
+        qnet._compiled_call_impl = None  # nn.Module.compile's hook: back to the eager forward
+        qnet.zero_grad(set_to_none=True)
+        warnings.warn(f"agent.compile: torch.compile failed ({type(err).__name__}: {err}); "
+                      "running eager", RuntimeWarning, stacklevel=2)
+        return False
 
 
 class Learner:
@@ -26,6 +53,12 @@ class Learner:
         self.cfg = cfg
         self.actor: QValueActor = make_q_actor()
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
+        if _option(cfg, "channels_last", False):
+            # Before DQNLoss copies the parameters: online and target weights, and Adam's
+            # moments, all stay channels_last (NHWC convs and pools run faster on CPU).
+            self.qnet.to(memory_format=torch.channels_last)
+        self.compiled = bool(_option(cfg, "compile", False)) and compile_qnet(
+            self.qnet, (1, int(cfg.batch_size)))
         self.loss_module = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                                    double_dqn=True, action_space="categorical")
         self.loss_module.make_value_estimator(gamma=cfg.gamma)
@@ -58,6 +91,21 @@ class Learner:
 
     def update(self, batch: TensorDictBase) -> float:
         """One gradient step and a target-update tick; returns the loss value."""
+        try:
+            return self._update(batch)
+        except Exception as err:
+            if not self.compiled:
+                raise
+            # A (re)compilation failed inside the forward or backward, before the optimizer
+            # step: drop the compiled forward and redo this update eagerly.
+            self.qnet._compiled_call_impl = None
+            self.compiled = False
+            self.optimizer.zero_grad(set_to_none=True)
+            warnings.warn(f"agent.compile: compiled update failed ({type(err).__name__}: {err}); "
+                          "running eager", RuntimeWarning, stacklevel=2)
+            return self._update(batch)
+
+    def _update(self, batch: TensorDictBase) -> float:
         loss = self.loss(batch)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()

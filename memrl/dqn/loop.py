@@ -115,6 +115,7 @@ class Trainer:
         """Buffer and exploration of the current stage."""
         a, m = self.cfg.agent, self.cfg.mode
         capacity, batch = int(self.cfg.buffer.capacity), int(a.batch_size)
+        compact = bool(self.cfg.buffer.get("compact", True))  # each frame stored once
         eps = (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames) \
             if self.counters.stage == "B2" else (a.eps_start, a.eps_end, a.eps_decay_frames)
         self.explore = make_exploration(self.learner.actor, *eps)
@@ -123,16 +124,17 @@ class Trainer:
         if self.counters.stage == "A":
             assert self.demos is not None
             self.buffer: Any = PriorKnowledgeBuffer(self.demos, capacity, float(m.demo_fraction),
-                                                    batch, sampling=str(m.sampling))
+                                                    batch, sampling=str(m.sampling),
+                                                    compact=compact)
         elif self.counters.stage == "B1":
             assert self.demos is not None
             self.learner.margin_weight = float(m.stage1.margin_weight)
             self.learner.margin = float(m.stage1.margin)
             train, self.held_out = split_demos(self.demos, float(m.stage1.holdout_fraction),
                                                int(self.cfg.seed))
-            self.buffer = demo_buffer(train, batch)
+            self.buffer = demo_buffer(train, batch, compact=compact)
         else:
-            self.buffer = agent_buffer(capacity, batch)
+            self.buffer = agent_buffer(capacity, batch, compact=compact)
 
     # ------------------------------------------------------------------ checkpoints
     def _state(self) -> dict[str, Any]:
