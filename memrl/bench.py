@@ -52,9 +52,9 @@ def _e2e(cfg: DictConfig) -> dict[str, Any]:
 def _stage1(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import stage1_check
 
-    values = OmegaConf.to_container(cfg, resolve=True)
-    values["margin_weights"] = tuple(values["margin_weights"])  # type: ignore[index]
-    return stage1_check.run(**values)  # type: ignore[arg-type]
+    values: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
+    values["margin_weights"] = tuple(values["margin_weights"])
+    return stage1_check.run(**values)
 
 
 BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "stage1": _stage1,
