@@ -28,7 +28,8 @@ def test_bench_learner_times_memrl_beside_the_bare_loop(compose_cfg, tmp_path, m
         assert b4[name]["updates_per_s"] > 0 and len(b4[name]["rounds"]) == 1, name
     assert b4["bare_naive"]["threads"] == learner_speed.DEFAULT_THREADS
     assert b4["memrl_tuned"]["channels_last"] is True
-    assert res["default_options"] == {"threads": 1, "channels_last": True, "compile": False}
+    assert res["default_options"] == {"threads": 1, "channels_last": True, "compile": False,
+                                      "pool_first": True}
     assert b4["ratio_memrl_tuned_to_bare_tuned"] == pytest.approx(
         b4["memrl_tuned"]["updates_per_s"] / b4["bare_tuned"]["updates_per_s"], rel=1e-2)
     assert "load_average" in json.loads((tmp_path / "bench.json").read_text())["machine"]

@@ -89,3 +89,13 @@ def test_margin_loss_on_demo_items_matches_a_hand_computation():
         got = learner.loss(td)
     assert (expected >= 0).all()
     assert torch.allclose(got, base + 2.0 * expected.mean(), atol=1e-6)
+
+
+def test_pool_first_network_equals_table_i_order_exactly():
+    from memrl.modules.qnet import QNetwork
+
+    torch.manual_seed(0)
+    literal, fast = QNetwork(pool_first=False), QNetwork(pool_first=True)
+    fast.load_state_dict(literal.state_dict())  # same parameter names in both orders
+    x = torch.randint(0, 256, (5, 4, 84, 84), dtype=torch.uint8)
+    assert torch.equal(literal(x), fast(x))

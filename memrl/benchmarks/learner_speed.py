@@ -10,7 +10,8 @@ step is the training loop's (``Trainer._learn``): a uniform sample from the real
 Variants, timed in interleaved rounds in one process (each figure is the median of its
 rounds; every round's figure is kept):
 
-- ``bare_naive``: eager, float32, NCHW, torch's default thread count;
+- ``bare_naive``: eager, float32, NCHW, torch's default thread count, Table I's literal
+  ReLU-then-pool order;
 - ``bare_tuned``: the bare loop with memrl's default learner options (``agent.threads``,
   ``agent.channels_last``, ``agent.compile``);
 - ``memrl_naive``: memrl with those options off (threads: torch's default);
@@ -34,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from memrl.dqn.config import AgentConfig
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-OPTIONS = ("threads", "channels_last", "compile")
+OPTIONS = ("threads", "channels_last", "compile", "pool_first")
 """The learner speed options of ``agent`` (``conf/agent/dqn.yaml``)."""
 
 
@@ -79,7 +80,7 @@ def bare_step(agent: DictConfig, batch: dict[str, torch.Tensor], seed: int) -> C
     from memrl.modules.qnet import QNetwork
 
     torch.manual_seed(seed)
-    net = QNetwork()
+    net = QNetwork(pool_first=bool(agent.get("pool_first", True)))
     if agent.channels_last:
         net = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     target = copy.deepcopy(net)
@@ -149,7 +150,7 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
     """Measure every variant at every batch size; returns figures and ratios."""
     batch_sizes = list(batch_sizes or [32, 128])
     tuned = default_agent_cfg()
-    naive = agent_variant(tuned, threads=0, channels_last=False, compile=False)
+    naive = agent_variant(tuned, threads=0, channels_last=False, compile=False, pool_first=False)
     res: dict[str, Any] = {
         "seconds_per_window": seconds, "rounds": rounds,
         "default_options": {k: tuned[k] for k in OPTIONS},

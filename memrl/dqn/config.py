@@ -38,6 +38,9 @@ class AgentConfig:
     """Env steps over which epsilon decays linearly from eps_start to eps_end."""
     grad_clip: float = 10.0
     """Max global gradient norm (0: no clipping)."""
+    pool_first: bool = True
+    """Max-pool before ReLU in the Q-network: the same outputs as Table I's ReLU-then-pool
+    (ReLU is monotonic) with a quarter of the ReLU work."""
     threads: int = 1
     """torch intra-op threads (0: leave torch's default, one per core). 1 is the robust fastest
     on 2 cores (``python -m memrl.bench learner``): a second OpenMP thread makes an update about

@@ -51,7 +51,7 @@ class Learner:
 
     def __init__(self, cfg: AgentConfig | Any) -> None:
         self.cfg = cfg
-        self.actor: QValueActor = make_q_actor()
+        self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)))
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
         if _option(cfg, "channels_last", False):
             # Before DQNLoss copies the parameters: online and target weights, and Adam's
