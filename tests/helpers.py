@@ -6,6 +6,7 @@ import torch
 from tensordict import TensorDictBase
 
 from memrl.data.transitions import to_transitions
+from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import IDLE
 from memrl.modules.policy import DrivingPolicy, PolicyModule
@@ -36,3 +37,11 @@ def make_demos(n: int, seed: int = 0, duration: int = 30) -> TensorDictBase:
         parts.append(to_transitions(td, is_demo=True))
         total += len(td)
     return torch.cat(parts)[:n]
+
+
+def empty_road(**config) -> LaneChangeEnv:
+    """A reset env with target lane 1 and no other car: the base of hand-made situations."""
+    env = LaneChangeEnv(config={"target_lane": 1, **config})
+    env.reset(seed=0)
+    env.remove_others()
+    return env

@@ -11,15 +11,9 @@ from memrl.envs import ENV_ID, register_envs
 from memrl.envs.config import EnvConfigError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import IDLE, action_index
+from tests.helpers import empty_road
 
 W = 4.0  # default lane width [m]
-
-
-def make(**config) -> LaneChangeEnv:
-    env = LaneChangeEnv(config={"target_lane": 1, **config})
-    env.reset(seed=0)
-    env.remove_others()
-    return env
 
 
 def test_gymnasium_check_env_and_idempotent_registration():
@@ -33,7 +27,7 @@ def test_gymnasium_check_env_and_idempotent_registration():
 
 
 def test_actions_change_speed_and_curvature_by_paper_steps_and_clamp():
-    env = make()
+    env = empty_road()
     env.place_agent(500.0, W, speed=1.0)
     car = env.vehicle
     car.apply_action(action_index(+1, 0))
@@ -49,7 +43,7 @@ def test_actions_change_speed_and_curvature_by_paper_steps_and_clamp():
 
 
 def test_heading_rate_is_speed_times_curvature():
-    env = make(vehicles_count=0)
+    env = empty_road(vehicles_count=0)
     env.place_agent(500.0, W, speed=5.0, curvature=0.01)
     for _ in range(10):
         env.vehicle.step(0.1)
@@ -75,7 +69,7 @@ def step_components(env: LaneChangeEnv, action: int = IDLE):
     ],
 )
 def test_reward_terms_of_hand_made_situations(y, speed, expected, components):
-    env = make()
+    env = empty_road()
     env.place_agent(500.0, y, speed=speed)
     reward, terminated, info = step_components(env)
     full = {"collision": 0, "lane_centre": 0, "stopped": 0, "target_lane": 0, "non_target_lane": 0}
@@ -86,14 +80,14 @@ def test_reward_terms_of_hand_made_situations(y, speed, expected, components):
 
 
 def test_reward_weights_come_from_config():
-    env = make(reward={"lane_centre": 0.5, "target_lane": 3.0})
+    env = empty_road(reward={"lane_centre": 0.5, "target_lane": 3.0})
     env.place_agent(500.0, W, speed=5.0)
     reward, _, _ = step_components(env)
     assert reward == pytest.approx(3.5)
 
 
 def test_collision_with_a_car_terminates_with_minus_five():
-    env = make()
+    env = empty_road()
     env.place_agent(500.0, W, speed=5.0)
     env.add_car(505.5, W, speed=0.0)  # 0.5 m gap; the agent covers 0.5 m in one step... and more
     env.vehicle.speed = 8.0
@@ -104,7 +98,7 @@ def test_collision_with_a_car_terminates_with_minus_five():
 
 
 def test_no_collision_one_step_before_contact():
-    env = make()
+    env = empty_road()
     env.place_agent(500.0, W, speed=5.0)
     env.add_car(506.0, W, speed=0.0)  # 1 m gap, agent moves 0.5 m
     _, terminated, info = step_components(env)
@@ -115,7 +109,7 @@ def test_no_collision_one_step_before_contact():
                                          (6.0 - 1.05, False), (6.0 - 0.95, True)])
 def test_road_edges_are_walls(y, hits):
     # car width 2 m: the body reaches 1 m either side of its centre; edges at -2 m and 6 m
-    env = make()
+    env = empty_road()
     env.place_agent(500.0, y, speed=1.0)
     reward, terminated, info = step_components(env)
     assert terminated == hits and info["collided"] == hits
@@ -123,7 +117,7 @@ def test_road_edges_are_walls(y, hits):
 
 
 def test_truncated_after_300_steps_on_an_empty_road():
-    env = make(vehicles_count=0)
+    env = empty_road(vehicles_count=0)
     env.place_agent(500.0, W, speed=5.0)
     for step in range(1, 301):
         _, reward, terminated, truncated, _ = env.step(IDLE)
@@ -133,7 +127,7 @@ def test_truncated_after_300_steps_on_an_empty_road():
 
 
 def test_reached_target_needs_the_whole_body_in_the_target_lane():
-    env = make()
+    env = empty_road()
     env.place_agent(500.0, 0.0, speed=5.0)
     assert not env.reached_target
     env.place_agent(500.0, W - 1.5, speed=5.0)  # centre in target lane, body over the line

@@ -9,6 +9,7 @@ from torchrl.envs.transforms.functional import rgb_to_grayscale
 
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.render import PALETTE, gray_palette
+from tests.helpers import empty_road
 
 LAT, LON = 0.2, 0.8  # default m/px across / along the road
 
@@ -19,20 +20,13 @@ def centroid(mask: np.ndarray) -> tuple[float, float]:
     return cols.mean() + 0.5, rows.mean() + 0.5
 
 
-def scene(**config) -> LaneChangeEnv:
-    env = LaneChangeEnv(config={"target_lane": 1, **config})
-    env.reset(seed=0)
-    env.remove_others()
-    return env
-
-
 def test_gray_levels_stay_distinct():
     levels = sorted(gray_palette(PALETTE).values())
     assert min(np.diff(levels)) >= 25, levels
 
 
 def test_agent_at_crop_centre_with_its_size():
-    env = scene()
+    env = empty_road()
     env.place_agent(500.0, 4.0, speed=5.0)
     img = env.observe_from(env.vehicle, env.target_lane)[0]
     agent = img == gray_palette(PALETTE)["agent"]
@@ -45,7 +39,7 @@ def test_agent_at_crop_centre_with_its_size():
 
 @pytest.mark.parametrize(("dx", "dy"), [(10.0, 4.0), (-20.0, -4.0), (25.0, 0.0), (-8.0, 3.0)])
 def test_other_car_lands_where_its_offset_predicts(dx, dy):
-    env = scene()
+    env = empty_road()
     env.place_agent(500.0, 2.0, speed=5.0)  # on the lane line, so +-4 m stays on the road
     env.add_car(500.0 + dx, 2.0 + dy, speed=5.0)
     img = env.observe_from(env.vehicle, env.target_lane)[0]
@@ -56,7 +50,7 @@ def test_other_car_lands_where_its_offset_predicts(dx, dy):
 
 
 def test_crop_centred_on_another_car_shows_the_agent_as_learned():
-    env = scene()
+    env = empty_road()
     env.place_agent(500.0, 0.0, speed=5.0)
     other = env.add_car(510.0, 4.0, speed=5.0)
     img = env.observe_from(other, target_lane=0)[0]
@@ -85,7 +79,7 @@ def test_gray_drawing_equals_torchrl_grayscale_of_rgb_drawing():
 
 
 def test_road_edges_lane_line_and_target_shade_columns():
-    env = scene()
+    env = empty_road()
     env.place_agent(500.0, 0.0, speed=5.0)  # lane 0 centre at column 42
     img = env.observe_from(env.vehicle, env.target_lane)[0]
     g = gray_palette(PALETTE)
@@ -98,7 +92,7 @@ def test_road_edges_lane_line_and_target_shade_columns():
 
 
 def test_dashes_move_with_the_car_and_repeat_every_period():
-    env = scene()
+    env = empty_road()
     # x chosen so that no dash end falls on a pixel boundary (no rounding ties)
     env.place_agent(499.9, 0.0, speed=5.0)
     a = env.observe_from(env.vehicle, 1)[0, :, 51].copy()

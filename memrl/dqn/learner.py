@@ -143,8 +143,7 @@ class Learner:
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)
 
 
-def make_exploration(actor: QValueActor, eps_start: float, eps_end: float,
-                     decay_frames: int) -> EGreedyModule:
+def make_exploration(eps_start: float, eps_end: float, decay_frames: int) -> EGreedyModule:
     """TorchRL's linearly annealed epsilon-greedy module over the 9 actions."""
     from torchrl.data import Categorical
 

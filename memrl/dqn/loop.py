@@ -118,7 +118,7 @@ class Trainer:
         compact = bool(self.cfg.buffer.get("compact", True))  # each frame stored once
         eps = (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames) \
             if self.counters.stage == "B2" else (a.eps_start, a.eps_end, a.eps_decay_frames)
-        self.explore = make_exploration(self.learner.actor, *eps)
+        self.explore = make_exploration(*eps)
         self.policy = TensorDictSequential(self.learner.actor, self.explore)
         self.held_out: TensorDictBase | None = None
         if self.counters.stage == "A":

@@ -92,6 +92,7 @@ class LaneChangeEnv(AbstractEnv):
         self._bev: BEVRenderer | None = None
         self._opponents: Opponents | None = None
         self._scene: BEVRenderer | None = None
+        self._components: dict[str, float] | None = None
         super().__init__(config, render_mode)
 
     @classmethod
@@ -118,6 +119,7 @@ class LaneChangeEnv(AbstractEnv):
     # ----------------------------------------------------------------------------- scene
     def _reset(self) -> None:
         cfg, rng = self.cfg, self.np_random
+        self._components = None
         self.config["simulation_frequency"] = self.config["policy_frequency"] = 1.0 / cfg.dt
         self._make_road()
         n = cfg.lanes_count
@@ -222,6 +224,7 @@ class LaneChangeEnv(AbstractEnv):
         car.heading, car.speed, car.curvature = heading, speed, curvature
         car.crashed = False
         car.on_state_update()
+        self._components = None
         self.reached_target = self._inside_target_lane(*self._lateral_extent(car))
 
     def _cars_of(self, controller: CarController) -> list[CurvatureVehicle]:
@@ -230,6 +233,7 @@ class LaneChangeEnv(AbstractEnv):
     # ------------------------------------------------------------------------------ step
     def _simulate(self, action: Any = None) -> None:
         """One action step: every car takes its action, then all move by ``dt``."""
+        self._components = None
         if action is not None:
             self.action_type.act(action)
         for controller in self.controllers:
@@ -277,6 +281,12 @@ class LaneChangeEnv(AbstractEnv):
         return int((car or self.vehicle).lane_index[2])
 
     def _rewards(self, action: Any = None) -> dict[str, float]:
+        # Computed once per state: step() asks for them twice (reward, then info).
+        if self._components is None:
+            self._components = self._reward_components()
+        return self._components
+
+    def _reward_components(self) -> dict[str, float]:
         cfg, car = self.cfg, self.vehicle
         lane = self.current_lane()
         offset = car.position[1] - lane * cfg.lane_width
@@ -300,16 +310,16 @@ class LaneChangeEnv(AbstractEnv):
         return self.steps >= self.cfg.duration
 
     def _info(self, obs: Any, action: Any = None) -> dict:
-        car = self.vehicle
+        car, lane = self.vehicle, self.current_lane()
         return {
             "speed": float(car.speed),
             "curvature": float(car.curvature),
-            "lane": self.current_lane(),
+            "lane": lane,
             "target_lane": self.target_lane,
             "rewards": self._rewards(action),
             # numpy scalars: TorchRL's info reader needs a dtype on every value
             "collided": np.bool_(car.crashed),
-            "on_target_lane": np.bool_(self.current_lane() == self.target_lane),
+            "on_target_lane": np.bool_(lane == self.target_lane),
             "reached_target": np.bool_(self.reached_target),
         }
 
