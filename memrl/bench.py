@@ -46,7 +46,9 @@ def _memory(cfg: DictConfig) -> dict[str, Any]:
 def _e2e(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import e2e
 
-    return e2e.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+    values: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
+    values["overlap"] = tuple(values.get("overlap", (False, True)))
+    return e2e.run(**values)
 
 
 def _stage1(cfg: DictConfig) -> dict[str, Any]:

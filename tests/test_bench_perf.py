@@ -57,10 +57,14 @@ def test_bench_e2e_reports_the_busy_share_after_warmup(compose_cfg, tmp_path):
                                 "e2e.learner_seconds=0.05",
                                 "e2e.overrides=['agent.warmup_frames=16','agent.batch_size=8',"
                                 "'env.duration=20','buffer.capacity=200']"])
-    res = bench(cfg, tmp_path)["e2e"]
-    assert res["total_frames"] >= 48 and res["updates"] >= 2
-    assert 0 < res["learner_busy_after_warmup"] <= 1
-    assert res["updates_per_s_after_warmup"] > 0 and res["learner_only_updates_per_s"] > 0
+    runs = bench(cfg, tmp_path)["e2e"]["runs"]
+    assert [r["agent_options"]["overlap"] for r in runs] == [False, True]
+    for res in runs:
+        assert res["total_frames"] >= 48 and res["updates"] >= 2
+        assert 0 < res["learner_busy_after_warmup"] <= 1
+        assert res["updates_per_s_after_warmup"] > 0 and res["learner_only_updates_per_s"] > 0
+    # The same seed and schedule: the same number of updates either way.
+    assert runs[0]["updates"] == runs[1]["updates"]
 
 
 def test_channels_last_learner_matches_the_default_layout():

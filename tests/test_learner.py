@@ -99,3 +99,20 @@ def test_pool_first_network_equals_table_i_order_exactly():
     fast.load_state_dict(literal.state_dict())  # same parameter names in both orders
     x = torch.randint(0, 256, (5, 4, 84, 84), dtype=torch.uint8)
     assert torch.equal(literal(x), fast(x))
+
+
+def test_exploration_ignores_the_process_wide_deterministic_mode():
+    """TorchRL losses set a process-wide deterministic exploration type while they run; the
+    acting thread of overlap mode must keep exploring meanwhile."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from memrl.dqn.learner import make_exploration
+
+    explore = make_exploration(1.0, 1.0, 10)  # always random
+    torch.manual_seed(0)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        actions = [int(explore(TensorDict({"action": torch.tensor(4)}, []))["action"])
+                   for _ in range(50)]
+    assert len(set(actions)) > 3
+    greedy = make_exploration(0.0, 0.0, 10)
+    assert int(greedy(TensorDict({"action": torch.tensor(4)}, []))["action"]) == 4

@@ -81,10 +81,11 @@ class Killed(RuntimeError):
     pass
 
 
-@pytest.mark.parametrize("mode", [None, "A"])
+@pytest.mark.parametrize(("mode", "overlap"), [(None, True), (None, False), ("A", True)])
 def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_path, demos,
-                                                            monkeypatch, mode):
-    extra = ["total_episodes=6", "checkpoint_every=2"] + ([f"+mode={mode}"] if mode else [])
+                                                            monkeypatch, mode, overlap):
+    extra = ["total_episodes=6", "checkpoint_every=2", f"agent.overlap={overlap}"] + (
+        [f"+mode={mode}"] if mode else [])
     cfg = compose_cfg("train", TINY + extra)
     full = train(cfg, tmp_path / "full", demos=demos)
 
@@ -173,3 +174,19 @@ def test_periodic_evaluation_rows_during_training(compose_cfg, tmp_path):
     evals = rows(tmp_path / "eval_periodic.csv")
     assert [int(r["episode"]) for r in evals] == [2]
     assert 0 <= float(evals[0]["survival_random"]) <= 100
+
+
+def test_overlapped_collection_is_deterministic_and_keeps_the_schedule(compose_cfg, tmp_path):
+    """Two overlapped runs are identical (the learner thread's loss must not switch the
+    acting thread's exploration off), and every mode keeps the update schedule."""
+    base = TINY + ["total_episodes=4", "agent.warmup_frames=8"]
+    runs = [train(compose_cfg("train", base + [f"agent.overlap={o}"]), tmp_path / f"{o}_{i}")
+            for i, o in enumerate([True, True, False])]
+    a, b = (torch.load(tmp_path / name / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+            for name in ("True_0", "True_1"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert rows(tmp_path / "True_0" / "episodes.csv") == rows(tmp_path / "True_1" / "episodes.csv")
+    assert runs[0].updates == runs[1].updates > 0
+    # Same schedule either way: one update at every 4th env step from step 8 (warm-up) on.
+    for run in runs:
+        assert run.updates == run.frames // 4 - 1

@@ -37,33 +37,47 @@ def compose_train(overrides: list[str]) -> DictConfig:
 
 
 class TimedTrainer(Trainer):
-    """A Trainer recording the (start, end) of every update."""
+    """A Trainer recording the (start, end) of every learner update (gradient step; with
+    ``agent.overlap`` it runs in the learner thread, in either mode on the learner alone)."""
 
-    spans: list[tuple[float, float]]
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.spans: list[tuple[float, float]] = []
+        update = self.learner.update
 
-    def _learn(self) -> None:
-        if not hasattr(self, "spans"):
-            self.spans = []
-        t0 = time.perf_counter()
-        super()._learn()
-        self.spans.append((t0, time.perf_counter()))
+        def timed(batch: Any) -> float:
+            t0 = time.perf_counter()
+            loss = update(batch)
+            self.spans.append((t0, time.perf_counter()))
+            return loss
+
+        self.learner.update = timed  # type: ignore[method-assign]
 
 
 def run(total_frames: int = 1000, learner_seconds: float = 5.0, seed: int = 0,
-        overrides: list[str] | None = None) -> dict[str, Any]:
+        overrides: list[str] | None = None,
+        overlap: tuple[bool, ...] = (False, True)) -> dict[str, Any]:
+    """The smoke preset for ``total_frames`` env steps once per ``agent.overlap`` value, side
+    by side in this process: frames/s, updates/s and the learner's busy share of each."""
+    return {"runs": [run_one(total_frames, learner_seconds, seed,
+                             [*(overrides or []), f"agent.overlap={bool(o)}"]) for o in overlap]}
+
+
+def run_one(total_frames: int, learner_seconds: float, seed: int,
+            overrides: list[str]) -> dict[str, Any]:
     """Train the smoke preset for ``total_frames`` env steps; figures and the busy share."""
     from memrl.dqn.config import check_train_config
 
     threads_before = torch.get_num_threads()
     cfg = compose_train(["+experiment=smoke", f"total_frames={total_frames}", f"seed={seed}",
-                         "progress=false", "logger=none", *(overrides or [])])
+                         "progress=false", "logger=none", *overrides])
     check_train_config(cfg)
     with tempfile.TemporaryDirectory() as tmp:
         trainer = TimedTrainer(cfg, Path(tmp))
         start = time.perf_counter()
         summary = trainer.run()
         wall = time.perf_counter() - start
-        spans = getattr(trainer, "spans", [])
+        spans = list(trainer.spans)
         if len(spans) < 2:
             raise RuntimeError(f"e2e: only {len(spans)} updates in {total_frames} frames; "
                                "raise total_frames above agent.warmup_frames")
@@ -74,7 +88,7 @@ def run(total_frames: int = 1000, learner_seconds: float = 5.0, seed: int = 0,
         # The reference: the same learner and buffer, updating back to back.
         n, t0 = 0, time.perf_counter()
         while time.perf_counter() - t0 < learner_seconds:
-            trainer.learner.update(trainer.buffer.sample())
+            trainer.learner.update(trainer.buffer.sample())  # the timed wrapper: a few us
             n += 1
         learner_only = n / (time.perf_counter() - t0)
     torch.set_num_threads(threads_before)
@@ -84,7 +98,8 @@ def run(total_frames: int = 1000, learner_seconds: float = 5.0, seed: int = 0,
         "episodes": summary.episodes, "updates": summary.updates,
         "warmup_frames": int(cfg.agent.warmup_frames), "train_every": int(cfg.agent.train_every),
         "batch_size": int(cfg.agent.batch_size),
-        "agent_options": {k: cfg.agent[k] for k in ("threads", "channels_last", "compile")},
+        "agent_options": {k: cfg.agent[k] for k in ("threads", "channels_last", "compile",
+                                                    "overlap")},
         "wall_s": round(wall, 2),
         "frames_per_s": round(summary.frames / wall, 2),
         "updates_per_s": round(summary.updates / wall, 3),

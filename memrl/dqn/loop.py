@@ -9,11 +9,13 @@ would have done after its last checkpoint.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import logging
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -75,6 +77,17 @@ class Summary:
     resumed_from_episode: int | None
 
 
+@dataclass
+class _Episode:
+    """Running totals of the episode under way."""
+
+    ret: float = 0.0
+    length: int = 0
+    collided: bool = False
+    reached: bool = False
+    done: bool = False
+
+
 def episode_seed(seed: int, episode: int) -> int:
     """Reset seed of an episode: fixed by the run seed and the episode index."""
     return int(np.random.SeedSequence([int(seed), int(episode)]).generate_state(1)[0])
@@ -109,6 +122,7 @@ class Trainer:
         self._update_time = 0.0
         self._losses: deque[float] = deque(maxlen=100_000)
         self.resumed_from: int | None = None
+        self._pool: ThreadPoolExecutor | None = None
 
     # ------------------------------------------------------------------ construction
     def _build_stage(self) -> None:
@@ -119,7 +133,16 @@ class Trainer:
         eps = (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames) \
             if self.counters.stage == "B2" else (a.eps_start, a.eps_end, a.eps_decay_frames)
         self.explore = make_exploration(*eps)
-        self.policy = TensorDictSequential(self.learner.actor, self.explore)
+        # Overlap mode acts with a copy of the online network, refreshed after each round, so
+        # the collecting thread never reads weights the optimizer is writing.
+        actor = self.learner.actor
+        self._acting_net: torch.nn.Module | None = None
+        if bool(a.get("overlap", False)):
+            actor = copy.deepcopy(self.learner.actor)
+            for module in actor.modules():  # a copied compiled forward would call the original
+                module._compiled_call_impl = None
+            self._acting_net = actor
+        self.acting = TensorDictSequential(actor, self.explore)
         self.held_out: TensorDictBase | None = None
         if self.counters.stage == "A":
             assert self.demos is not None
@@ -182,6 +205,10 @@ class Trainer:
         batch = self.buffer.sample()
         loss = self.learner.update(batch)
         self._update_time += time.perf_counter() - t0
+        self._book(batch, loss)
+
+    def _book(self, batch: TensorDictBase, loss: float) -> None:
+        """Counters, accumulators and the periodic updates.csv row of one finished update."""
         self.counters.updates += 1
         self._acc["loss"].append(loss)
         self._acc["demo"].append(float(batch["is_demo"].sum()))
@@ -268,36 +295,121 @@ class Trainer:
             path = self.out_dir / "pool" / f"episode_{n:07d}.pt"
             self._learned_controller().add_network(load_qnet(path)[0])  # type: ignore[union-attr]
 
-    def run_episode(self) -> None:
-        """One episode of collection with interleaved updates."""
-        cfg, c = self.cfg, self.counters
-        a = cfg.agent
-        td = self.env.reset(seed=episode_seed(int(cfg.seed), c.episodes))
-        ret, length, collided, reached = 0.0, 0, False, False
-        while True:
-            if c.frames < int(a.warmup_frames):
-                td["action"] = torch.randint(N_ACTIONS, ())
-            else:
-                self.policy(td)
-                self.explore.step(1)
-            td = self.env.step(td)
-            self.buffer.extend(to_transitions(td.unsqueeze(0)))
-            nxt = td["next"]
-            ret += float(nxt["reward"])
-            length += 1
-            collided = collided or bool(nxt["collided"])
-            reached = reached or bool(nxt["reached_target"])
-            c.frames += 1
-            if c.frames >= int(a.warmup_frames) and c.frames % int(a.train_every) == 0:
-                for _ in range(int(a.updates_per_round)):
-                    self._learn()
-            if bool(nxt["done"]):
-                break
+    def _act_step(self, td: TensorDictBase, ep: _Episode) -> TensorDictBase:
+        """One env step with the acting policy; returns the transition, counted in ``ep``."""
+        c = self.counters
+        if c.frames < int(self.cfg.agent.warmup_frames):
+            td["action"] = torch.randint(N_ACTIONS, ())
+        else:
+            self.acting(td)
+            self.explore.step(1)
+        td = self.env.step(td)
+        nxt = td["next"]
+        ep.ret += float(nxt["reward"])
+        ep.length += 1
+        ep.collided = ep.collided or bool(nxt["collided"])
+        ep.reached = ep.reached or bool(nxt["reached_target"])
+        ep.done = bool(nxt["done"])
+        c.frames += 1
+        return td
+
+    def _collect(self, td: TensorDictBase, steps: int, ep: _Episode,
+                 out: list[TensorDictBase]) -> TensorDictBase:
+        """Up to ``steps`` env steps (fewer if the episode ends); transitions go to ``out``.
+        Returns the tensordict to act on next (the last transition once the episode is done)."""
+        for _ in range(steps):
+            td = self._act_step(td, ep)
+            out.append(to_transitions(td.unsqueeze(0)))
+            if ep.done:
+                return td
             td = step_mdp(td)
+        return td
+
+    def _learn_due(self) -> bool:
+        a, frames = self.cfg.agent, self.counters.frames
+        return frames >= int(a.warmup_frames) and frames % int(a.train_every) == 0
+
+    def _overlapped_round(self, td: TensorDictBase, ep: _Episode) -> TensorDictBase:
+        """One update round in a thread while this one collects the next ``train_every`` steps.
+
+        Hand-written: TorchRL's collectors run free of the update schedule (no exact resume);
+        here the batches are drawn first, the thread only steps the env with the acting copy,
+        and its transitions join the buffer after the update, so the run stays deterministic.
+        """
+        a = self.cfg.agent
+        batches = [self.buffer.sample() for _ in range(int(a.updates_per_round))]
+        new: list[TensorDictBase] = []
+
+        def learn() -> tuple[list[float], float]:
+            t0 = time.perf_counter()
+            losses = [self.learner.update(batch) for batch in batches]
+            return losses, time.perf_counter() - t0
+
+        # The update runs in the learner thread and the env in this one: every draw from the
+        # global RNGs (exploration, env) stays in one thread, in a fixed order.
+        future = self._learner_thread().submit(learn)
+        try:
+            td = self._collect(td, int(a.train_every), ep, new)
+        finally:
+            losses, seconds = future.result()  # re-raises the update's error, if any
+        self._update_time += seconds
+        for batch, loss in zip(batches, losses, strict=True):
+            self._book(batch, loss)
+        for transition in new:
+            self.buffer.extend(transition)
+        self._sync_acting()
+        return td
+
+    def _learner_thread(self) -> ThreadPoolExecutor:
+        """The one long-lived learner thread of overlap mode, with ``agent.threads`` torch
+        threads of its own (a new thread would otherwise start with one per core)."""
+        if self._pool is None:
+            threads = int(self.cfg.agent.threads)
+
+            def init() -> None:
+                if threads:
+                    torch.set_num_threads(threads)
+
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="memrl-learn", initializer=init)
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the learner thread (overlap mode); the trainer can go on and restart it."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def _sync_acting(self) -> None:
+        """Refresh the acting copy from the online network (overlap mode)."""
+        if self._acting_net is not None:
+            with torch.no_grad():
+                for dst, src in zip(self._acting_net.parameters(), self.learner.qnet.parameters(),
+                                    strict=True):
+                    dst.copy_(src)
+
+    def run_episode(self) -> None:
+        """One episode of collection with interleaved (or, with ``agent.overlap``, overlapped)
+        updates."""
+        cfg, c = self.cfg, self.counters
+        td = self.env.reset(seed=episode_seed(int(cfg.seed), c.episodes))
+        ep = _Episode()
+        overlap = bool(cfg.agent.get("overlap", False))
+        while not ep.done:
+            new: list[TensorDictBase] = []
+            td = self._collect(td, 1, ep, new)
+            self.buffer.extend(new[0])
+            while self._learn_due():
+                if overlap and not ep.done:
+                    td = self._overlapped_round(td, ep)  # ends on a due frame unless done
+                    continue
+                for _ in range(int(cfg.agent.updates_per_round)):
+                    self._learn()
+                self._sync_acting()
+                break
         c.episodes += 1
-        row = {"episode": c.episodes, "env_steps": c.frames, "return": round(ret, 4),
-               "survival_steps": length, "length": length, "collided": int(collided),
-               "reached_target": int(reached), "epsilon": round(float(self.explore.eps), 5),
+        row = {"episode": c.episodes, "env_steps": c.frames, "return": round(ep.ret, 4),
+               "survival_steps": ep.length, "length": ep.length, "collided": int(ep.collided),
+               "reached_target": int(ep.reached), "epsilon": round(float(self.explore.eps), 5),
                "stage": c.stage}
         self.records.episode(row)
         self._recent.append(row)
@@ -324,15 +436,19 @@ class Trainer:
         bar = tqdm(total=int(total), initial=c.episodes if unit == "episodes" else c.frames,
                    desc=f"train {self.mode}", unit=unit, disable=not cfg.progress,
                    dynamic_ncols=True)
-        while self._budget_left():
-            before = c.frames
-            self.run_episode()
-            bar.update(1 if unit == "episodes" else c.frames - before)
-            bar.set_postfix(frames=c.frames, episodes=c.episodes, eps=f"{float(self.explore.eps):.2f}",
-                            ret=f"{np.mean([r['return'] for r in self._recent]):.1f}")
-            if c.episodes % int(cfg.checkpoint_every) == 0:
-                self.save_checkpoint()
-        bar.close()
+        try:
+            while self._budget_left():
+                before = c.frames
+                self.run_episode()
+                bar.update(1 if unit == "episodes" else c.frames - before)
+                bar.set_postfix(frames=c.frames, episodes=c.episodes,
+                                eps=f"{float(self.explore.eps):.2f}",
+                                ret=f"{np.mean([r['return'] for r in self._recent]):.1f}")
+                if c.episodes % int(cfg.checkpoint_every) == 0:
+                    self.save_checkpoint()
+        finally:
+            self.close()
+            bar.close()
         self.save_checkpoint()
         return self._summary()
 
