@@ -24,12 +24,14 @@ def test_bench_learner_times_memrl_beside_the_bare_loop(compose_cfg, tmp_path, m
     res = bench(cfg, tmp_path)["learner"]
     b4 = res["batch_4"]
     for name in ("bare_naive", "bare_tuned", "memrl_naive", "memrl_tuned",
-                 "memrl_threads_2", "memrl_channels_last_false", "memrl_compile_true"):
+                 "memrl_threads_2", "memrl_channels_last_false", "memrl_compile_true",
+                 "memrl_precision_float32"):
         assert b4[name]["updates_per_s"] > 0 and len(b4[name]["rounds"]) == 1, name
     assert b4["bare_naive"]["threads"] == learner_speed.DEFAULT_THREADS
     assert b4["memrl_tuned"]["channels_last"] is True
     assert res["default_options"] == {"threads": 1, "channels_last": True, "compile": False,
-                                      "pool_first": True}
+                                      "pool_first": True, "precision": "auto"}
+    assert b4["bare_naive"]["precision"] == "float32"
     assert b4["ratio_memrl_tuned_to_bare_tuned"] == pytest.approx(
         b4["memrl_tuned"]["updates_per_s"] / b4["bare_tuned"]["updates_per_s"], rel=1e-2)
     assert "load_average" in json.loads((tmp_path / "bench.json").read_text())["machine"]
@@ -90,3 +92,37 @@ def test_compile_falls_back_to_eager_with_a_warning(monkeypatch):
         learner = Learner(AgentConfig(compile=True, batch_size=4))
     assert not learner.compiled
     assert learner.update(batch()) >= 0
+
+
+def test_bfloat16_conv_trunk_keeps_the_update_close_to_float32():
+    """agent.precision=bfloat16 autocasts the convs only: Q-values and loss stay float32 and
+    within bf16 rounding of the float32 network's."""
+    torch.manual_seed(0)
+    a = Learner(AgentConfig(precision="float32", lr=1e-3))
+    torch.manual_seed(0)
+    b = Learner(AgentConfig(precision="bfloat16", lr=1e-3))
+    assert a.qnet.conv_dtype is None and b.qnet.conv_dtype is torch.bfloat16
+    td = batch(seed=0)
+    q_a, q_b = a.q_values(td["pixels"]), b.q_values(td["pixels"])
+    assert q_b.dtype == torch.float32
+    assert torch.allclose(q_a, q_b, rtol=0.05, atol=0.02) and not torch.equal(q_a, q_b)
+    for seed in range(3):
+        td = batch(seed=seed)
+        assert b.update(td.clone()) == pytest.approx(a.update(td.clone()), rel=0.05, abs=1e-3)
+    assert all(p.dtype == torch.float32 for p in b.qnet.parameters())
+    # Gradients of one batch, same weights: the same direction within bf16 rounding.
+    b.qnet.load_state_dict(a.qnet.state_dict())
+    grads = []
+    for learner in (a, b):
+        learner.qnet.zero_grad()
+        learner.loss(batch(seed=5)).backward()
+        grads.append(torch.cat([p.grad.flatten() for p in learner.qnet.parameters()]))
+    cosine = torch.nn.functional.cosine_similarity(grads[0], grads[1], dim=0)
+    assert cosine > 0.99 and not torch.equal(grads[0], grads[1])
+
+
+def test_unknown_precision_is_refused_naming_the_key(compose_cfg):
+    from memrl.dqn.config import TrainConfigError, check_train_config
+
+    with pytest.raises(TrainConfigError, match="agent.precision"):
+        check_train_config(compose_cfg("train", ["agent.precision=float16"]))

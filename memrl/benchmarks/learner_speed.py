@@ -13,7 +13,7 @@ rounds; every round's figure is kept):
 - ``bare_naive``: eager, float32, NCHW, torch's default thread count, Table I's literal
   ReLU-then-pool order;
 - ``bare_tuned``: the bare loop with memrl's default learner options (``agent.threads``,
-  ``agent.channels_last``, ``agent.compile``);
+  ``agent.channels_last``, ``agent.compile``, ``agent.pool_first``, ``agent.precision``);
 - ``memrl_naive``: memrl with those options off (threads: torch's default);
 - ``memrl_tuned``: memrl with its defaults, the training configuration;
 - with ``ablation``, at the first batch size: memrl with each option flipped from its default.
@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from memrl.dqn.config import AgentConfig
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-OPTIONS = ("threads", "channels_last", "compile", "pool_first")
+OPTIONS = ("threads", "channels_last", "compile", "pool_first", "precision")
 """The learner speed options of ``agent`` (``conf/agent/dqn.yaml``)."""
 
 
@@ -77,10 +77,12 @@ def random_batch(n: int, seed: int) -> dict[str, torch.Tensor]:
 
 def bare_step(agent: DictConfig, batch: dict[str, torch.Tensor], seed: int) -> Callable[[], float]:
     """One double-DQN update of a plain PyTorch loop (no TorchRL), as a closure."""
+    from memrl.dqn.learner import conv_dtype
     from memrl.modules.qnet import QNetwork
 
     torch.manual_seed(seed)
     net = QNetwork(pool_first=bool(agent.get("pool_first", True)))
+    net.conv_dtype = conv_dtype(str(agent.get("precision", "float32")))
     if agent.channels_last:
         net = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     target = copy.deepcopy(net)
@@ -150,7 +152,8 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
     """Measure every variant at every batch size; returns figures and ratios."""
     batch_sizes = list(batch_sizes or [32, 128])
     tuned = default_agent_cfg()
-    naive = agent_variant(tuned, threads=0, channels_last=False, compile=False, pool_first=False)
+    naive = agent_variant(tuned, threads=0, channels_last=False, compile=False, pool_first=False,
+                          precision="float32")
     res: dict[str, Any] = {
         "seconds_per_window": seconds, "rounds": rounds,
         "default_options": {k: tuned[k] for k in OPTIONS},
@@ -173,6 +176,9 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
                 agent_variant(tuned_b, channels_last=not tuned.channels_last), "memrl")
             specs[f"memrl_compile_{not tuned.compile}".lower()] = (
                 agent_variant(tuned_b, compile=not tuned.compile), "memrl")
+            flipped = "float32" if str(tuned.precision) != "float32" else "bfloat16"
+            specs[f"memrl_precision_{flipped}"] = (agent_variant(tuned_b, precision=flipped),
+                                                   "memrl")
         steps: dict[str, Callable[[], float]] = {}
         figures: dict[str, dict[str, Any]] = {}
         for name, (agent, kind) in specs.items():
@@ -185,6 +191,7 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
             figures[name] = {"threads": _threads(int(agent.threads)),
                              "channels_last": bool(agent.channels_last),
                              "compile": bool(agent.compile),
+                             "precision": str(agent.precision),
                              "warmup_s": round(time.perf_counter() - start, 2), "rounds": []}
         for _ in range(rounds):
             for name, step in steps.items():

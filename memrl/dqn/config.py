@@ -11,6 +11,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+PRECISIONS = ("auto", "float32", "bfloat16")
+
 
 @dataclass
 class AgentConfig:
@@ -53,6 +55,11 @@ class AgentConfig:
     """``torch.compile`` the Q-network's forward (falls back to eager with a warning if it
     fails). Off: on this CPU it measured no faster than eager channels_last (inductor keeps the
     oneDNN convolutions), and compiling costs 10-70 s at start."""
+    precision: str = "auto"
+    """Conv trunk precision: ``float32``; ``bfloat16`` (autocast of the three convs, weights,
+    FC head, Q-values and loss stay float32); ``auto``: bfloat16 where the CPU has native
+    bf16 (oneDNN's check, e.g. AVX512-BF16 or AMX), else float32. Measured ~2x faster updates
+    at batch 32 on such a CPU (``python -m memrl.bench learner``), same loss curve."""
     overlap: bool = True
     """Collect the next ``train_every`` env steps in a second thread while the learner updates
     (the batch is sampled first; the new steps join the buffer after the update). The acting
@@ -141,6 +148,8 @@ def check_train_config(cfg: DictConfig) -> None:
     a, m = cfg.agent, cfg.mode
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
     _need(a.lr > 0, "agent.lr", "must be > 0")
+    _need(str(a.get("precision", "auto")) in PRECISIONS, "agent.precision",
+          f"must be one of {sorted(PRECISIONS)}")
     _need(a.get("threads", 0) >= 0, "agent.threads", f"must be >= 0, got {a.get('threads')}")
     for key in ("batch_size", "target_update_interval", "train_every", "updates_per_round"):
         _need(a[key] >= 1, f"agent.{key}", f"must be >= 1, got {a[key]}")

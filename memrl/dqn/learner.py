@@ -21,6 +21,18 @@ def _option(cfg: Any, key: str, default: Any) -> Any:
     return getattr(cfg, key, default) if not hasattr(cfg, "get") else cfg.get(key, default)
 
 
+def conv_dtype(precision: str) -> torch.dtype | None:
+    """The Q-network's conv trunk dtype for ``agent.precision`` (None: float32)."""
+    if precision == "bfloat16":
+        return torch.bfloat16
+    if precision == "auto" and torch.backends.mkldnn.is_available() \
+            and torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        return torch.bfloat16
+    if precision not in ("auto", "float32"):
+        raise ValueError(f"agent.precision: unknown {precision!r} (auto, float32, bfloat16)")
+    return None
+
+
 def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32)) -> bool:
     """``torch.compile`` the network's forward in place, then run it once per batch size, with
     and without gradients; on any failure (no C++ compiler, an unsupported op) warn and put the
@@ -54,6 +66,7 @@ class Learner:
         self.cfg = cfg
         self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)))
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
+        self.qnet.conv_dtype = conv_dtype(str(_option(cfg, "precision", "float32")))
         if _option(cfg, "channels_last", False):
             # Before DQNLoss copies the parameters: online and target weights, and Adam's
             # moments, all stay channels_last (NHWC convs and pools run faster on CPU).

@@ -37,10 +37,20 @@ class QNetwork(nn.Module):
         self.head = nn.Sequential(nn.Flatten(), nn.Linear(channels * side * side, hidden), nn.ReLU(),
                                   nn.Linear(hidden, n_actions))
 
+    conv_dtype: torch.dtype | None = None
+    """Lower precision for the conv trunk (``torch.bfloat16``: autocast, weights stay float32;
+    the FC head and the Q-values stay float32); None: float32 throughout."""
+
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         batch = pixels.shape[:-3]
         x = pixels.reshape(-1, *pixels.shape[-3:]).to(torch.float32).div_(255.0)
-        return self.head(self.features(x)).reshape(*batch, -1)
+        if self.conv_dtype is None:
+            features = self.features(x)
+        else:
+            with torch.autocast(x.device.type, dtype=self.conv_dtype):
+                features = self.features(x)
+            features = features.float()
+        return self.head(features).reshape(*batch, -1)
 
 
 def make_q_actor(frames: int = 4, size: int = 84, pool_first: bool = True) -> QValueActor:
