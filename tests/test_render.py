@@ -111,3 +111,32 @@ def test_scene_picture_is_rgb_and_not_blank():
     pic = env.render()
     assert pic.shape == (500, 120, 3) and pic.dtype == np.uint8
     assert (pic == np.array(PALETTE["agent"], dtype=np.uint8)).all(-1).sum() > 100
+
+
+@pytest.mark.parametrize("curvature", [0.0, 0.02, -0.02])
+def test_path_cue_draws_the_arc_the_car_will_drive(curvature):
+    agent_gray = gray_palette(PALETTE)["agent"]
+    off = empty_road()
+    off.place_agent(500.0, 2.0, speed=5.0, curvature=curvature)
+    body = int((off.observe_from(off.vehicle, 1)[0] == agent_gray).sum())
+    env = empty_road(bev={"path_length": 20.0})
+    env.place_agent(500.0, 2.0, speed=5.0, curvature=curvature)
+    img = env.observe_from(env.vehicle, 1)[0]
+    agent = img == agent_gray
+    assert agent.sum() > body + 15  # the body, plus ~20 px of line ahead of it
+    # The arc's end, 20 m ahead: 25 rows above the centre; k s^2 / 2 = +-4 m = +-20 px across.
+    end = env.bev.to_pixels(env.vehicle.position, env.bev.path_points(env.vehicle)[-1:])[0]
+    assert end[1] == pytest.approx(42.0 - 20.0 * np.cos(0) / LON, abs=1.0)
+    expected_col = 42.0 + (curvature * 20.0**2 / 2) / LAT
+    assert end[0] == pytest.approx(expected_col, abs=1.0)
+    top_rows = np.nonzero(agent[15:20])[1]
+    assert top_rows.size and abs(top_rows.mean() + 0.5 - expected_col) <= 2.0
+    assert (img[:15] != agent_gray).all()  # nothing beyond the path's end
+
+
+def test_path_cue_is_off_by_default_and_checked():
+    from memrl.envs.config import EnvConfigError
+
+    assert LaneChangeEnv().bev.path_length == 0.0
+    with pytest.raises(EnvConfigError, match="bev.path_length"):
+        LaneChangeEnv(config={"bev": {"path_length": -1.0}})

@@ -75,6 +75,9 @@ def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, 
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
     trainer.run_stage1()
     assert trainer.stage1.updates == 6 and "max_updates" in trainer.stage1.stop_reason
+    s1 = trainer.stage1
+    assert len(s1.parts) == len(s1.agreements) == 2  # checks at 4 and at the stop (6)
+    assert all(0 <= v <= 1 for part in s1.parts for v in part.values())
 
 
 class Killed(RuntimeError):
@@ -190,3 +193,24 @@ def test_overlapped_collection_is_deterministic_and_keeps_the_schedule(compose_c
     # Same schedule either way: one update at every 4th env step from step 8 (warm-up) on.
     for run in runs:
         assert run.updates == run.frames // 4 - 1
+
+
+def test_stage1_agreement_parts_split_speed_and_curvature():
+    """A network that always picks action 3 (keep speed, curvature -1) against demo actions
+    4 (idle), 3, 5 (keep speed, curvature +1) and 1 (slow down, keep curvature)."""
+    from tensordict import TensorDict
+
+    from memrl.dqn.stage1 import agreement, agreement_parts
+    from memrl.envs.vehicles import ACTIONS
+
+    assert [ACTIONS[i] for i in (4, 3, 5, 1)] == [(0, 0), (0, -1), (0, 1), (-1, 0)]
+
+    class Always3(torch.nn.Module):
+        def forward(self, pixels):
+            return torch.nn.functional.one_hot(torch.full(pixels.shape[:1], 3), 9).float()
+
+    held = TensorDict({"pixels": torch.zeros(4, 4, 84, 84, dtype=torch.uint8),
+                       "action": torch.tensor([4, 3, 5, 1])}, [4])
+    assert agreement(Always3(), held) == 0.25
+    assert agreement_parts(Always3(), held, chunk=3) == {
+        "speed": 0.75, "curvature": 0.25, "steering_recall": 0.5, "steering_share": 1.0}

@@ -66,6 +66,8 @@ def run(updates: int = 800, margin_weights: tuple[float, ...] = (0.0, 1.0), chec
             survived, reached = _drive(trainer.learner.qnet, env_cfg, episodes)
         out["runs"].append({"margin_weight": weight, "demos": len(demos),
                             "agreements": [round(a, 3) for a in trainer.stage1.agreements],
+                            "last_check_parts": {k: round(v, 3) for k, v in
+                                                 trainer.stage1.parts[-1].items()},
                             "updates_per_s": round(updates / wall, 2), "wall_s": round(wall, 1),
                             "survived_non_goal": survived, "reached_non_goal": reached})
     return out

@@ -34,7 +34,13 @@ from memrl.data.transitions import to_transitions
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.learner import Learner, make_exploration
 from memrl.dqn.records import RunRecords
-from memrl.dqn.stage1 import Stage1Progress, agreement, split_demos, stop_reason
+from memrl.dqn.stage1 import (
+    Stage1Progress,
+    agreement,
+    agreement_parts,
+    split_demos,
+    stop_reason,
+)
 from memrl.envs.torchrl_env import make_env
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
@@ -246,9 +252,11 @@ class Trainer:
             if s1.updates % int(cfg.check_every) == 0 or s1.updates >= int(cfg.max_updates):
                 s1.losses.append(float(np.mean(list(self._losses)[-int(cfg.check_every):])))
                 s1.agreements.append(agreement(self.learner.qnet, self.held_out))
+                s1.parts.append(agreement_parts(self.learner.qnet, self.held_out))
                 s1.stop_reason = stop_reason(cfg, s1)
-                log.info("stage 1: %d updates, loss %.4f, agreement %.3f%s", s1.updates,
+                log.info("stage 1: %d updates, loss %.4f, agreement %.3f (%s)%s", s1.updates,
                          s1.losses[-1], s1.agreements[-1],
+                         ", ".join(f"{k} {v:.3f}" for k, v in s1.parts[-1].items()),
                          f" -> stop: {s1.stop_reason}" if s1.stop_reason else "")
                 self._log_updates()  # every check gets its row
                 if s1.stop_reason:

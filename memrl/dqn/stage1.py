@@ -19,6 +19,8 @@ class Stage1Progress:
     """Mean TD loss of each check interval."""
     agreements: list[float] = field(default_factory=list)
     """Greedy/demo action agreement on held-out demos at each check."""
+    parts: list[dict[str, float]] = field(default_factory=list)
+    """At each check, :func:`agreement_parts` of the held-out demos."""
     stop_reason: str = ""
     done: bool = False
 
@@ -40,6 +42,30 @@ def agreement(qnet: torch.nn.Module, held_out: TensorDictBase, chunk: int = 256)
         part = held_out[start:start + chunk]
         hits += int((qnet(part["pixels"]).argmax(-1) == part["action"]).sum())
     return hits / len(held_out)
+
+
+@torch.no_grad()
+def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
+                    chunk: int = 256) -> dict[str, float]:
+    """Agreement per action component on held-out demos, to see what the network imitates:
+
+    ``speed`` and ``curvature``: share of transitions whose greedy action has the demo's speed
+    (curvature) change; ``steering_recall``: of the demo steps that change curvature (the
+    lane-change and lane-keeping corrections, ~12% of scripted demos), the share where the
+    greedy action changes curvature the same way; ``steering_share``: how often the greedy
+    action changes curvature at all.
+    """
+    greedy = torch.cat([qnet(held_out[i:i + chunk]["pixels"]).argmax(-1)
+                        for i in range(0, len(held_out), chunk)])
+    demo = held_out["action"].reshape(-1)
+    same_curv = greedy % 3 == demo % 3  # index = 3 * speed index + curvature index
+    steer = demo % 3 != 1
+    return {
+        "speed": float((greedy // 3 == demo // 3).float().mean()),
+        "curvature": float(same_curv.float().mean()),
+        "steering_recall": float(same_curv[steer].float().mean()) if bool(steer.any()) else 0.0,
+        "steering_share": float((greedy % 3 != 1).float().mean()),
+    }
 
 
 def stop_reason(cfg: Stage1Config, progress: Stage1Progress) -> str:

@@ -29,6 +29,12 @@ class BEVConfig:
     """Paint the target lane in its own shade: the only cue the agent has of where to go."""
     dash_length: float = 3.0
     """Length of a painted lane-marking dash [m] (gaps have the same length)."""
+    path_length: float = 0.0
+    """Draw the viewing car's path for this many metres ahead at its current heading and
+    curvature, a 1-px line in its own shade (0: off, the paper's picture). The curvature is
+    otherwise hard to see: one 0.01 rad/m step turns the car by under a pixel's worth over
+    four frames, and the scripted prior knowledge steers by it
+    (``python -m memrl.bench stage1`` compares)."""
     grayscale: bool = True
     """Draw each shade's grayscale level directly (observation ``[1, H, W]``); exactly TorchRL's
     ``GrayScale`` of the RGB drawing, 3x less work. False: RGB ``[3, H, W]`` observations, and
@@ -233,6 +239,7 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
             _check(getattr(sub, key) >= 8, f"{name}.{key}", "must be >= 8 px")
         for key in ("lateral_scale", "longitudinal_scale"):
             _check(getattr(sub, key) > 0, f"{name}.{key}", "must be > 0 m/px")
+    _check(cfg.bev.path_length >= 0, "bev.path_length", "must be >= 0 m (0: no path drawn)")
     return cfg
 
 

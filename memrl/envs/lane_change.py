@@ -333,6 +333,7 @@ class LaneChangeEnv(AbstractEnv):
                 View(b.width, b.height, b.lateral_scale, b.longitudinal_scale),
                 self.cfg.lanes_count, self.cfg.lane_width,
                 show_target_lane=b.show_target_lane, dash_length=b.dash_length,
+                path_length=b.path_length,
                 channels=1 if b.grayscale else 3,
             )
         return self._bev

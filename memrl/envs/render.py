@@ -67,6 +67,7 @@ class BEVRenderer:
         *,
         show_target_lane: bool = True,
         dash_length: float = 3.0,
+        path_length: float = 0.0,
         palette: dict[str, tuple[int, int, int]] | None = None,
         channels: int = 3,
     ) -> None:
@@ -76,6 +77,8 @@ class BEVRenderer:
             lane_width: [m].
             show_target_lane: paint the target lane in its own shade.
             dash_length: lane-marking dash (and gap) length [m].
+            path_length: length [m] of the ``ego`` car's path drawn ahead of it at its
+                current heading and curvature (0: none).
             palette: RGB shades by name (default :data:`PALETTE`).
             channels: 3 for RGB; 1 draws each shade's grayscale level directly, equal to
                 TorchRL's ``GrayScale`` of the RGB picture at a third of the drawing work.
@@ -88,6 +91,7 @@ class BEVRenderer:
         self.lane_width = lane_width
         self.show_target_lane = show_target_lane
         self.dash_length = dash_length
+        self.path_length = path_length
         rgb = dict(PALETTE if palette is None else palette)
         self.palette: dict[str, Color] = dict(rgb) if channels == 3 else dict(gray_palette(rgb))
         self._half_span = 0.5 * view.height * view.longitudinal_scale  # [m] ahead/behind shown
@@ -188,4 +192,24 @@ class BEVRenderer:
             for car, poly in zip(cars, polys, strict=True):
                 kind = "agent" if car is ego else ("learned" if car.kind == "agent" else car.kind)
                 self._fill_poly(img, poly, p[kind])
+        if ego is not None and self.path_length > 0:
+            self._draw_path(img, center, ego)
         return img
+
+    def path_points(self, car: CurvatureVehicle, points: int = 12) -> np.ndarray:
+        """``[points, (x, y)]`` [m]: the arc ``car`` drives over ``path_length`` metres at its
+        current heading and curvature."""
+        s = np.linspace(0.0, self.path_length, points)
+        k, h = float(car.curvature), float(car.heading)
+        if abs(k) < 1e-9:
+            dx, dy = s * np.cos(h), s * np.sin(h)
+        else:
+            dx = (np.sin(h + k * s) - np.sin(h)) / k
+            dy = (np.cos(h) - np.cos(h + k * s)) / k
+        return np.stack([car.position[0] + dx, car.position[1] + dy], axis=-1)
+
+    def _draw_path(self, img: np.ndarray, center: np.ndarray, car: CurvatureVehicle) -> None:
+        # Hand-written: highway-env draws no planned path in its observations.
+        px = self.to_pixels(center, self.path_points(car)) - 0.5  # pixel-centre coords
+        cv2.polylines(img, [np.round(px * _ONE).astype(np.int32)], False, self.palette["agent"],
+                      1, cv2.LINE_8, shift=_SHIFT)
