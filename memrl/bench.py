@@ -55,7 +55,6 @@ def _stage1(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import stage1_check
 
     values: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
-    values["margin_weights"] = tuple(values["margin_weights"])
     return stage1_check.run(**values)
 
 

@@ -126,3 +126,19 @@ def test_unknown_precision_is_refused_naming_the_key(compose_cfg):
 
     with pytest.raises(TrainConfigError, match="agent.precision"):
         check_train_config(compose_cfg("train", ["agent.precision=float16"]))
+
+
+def test_bench_stage1_reports_each_variant(compose_cfg, tmp_path):
+    cfg = compose_cfg("bench", [
+        "benchmarks=[stage1]", "stage1.updates=2", "stage1.check_every=1", "stage1.episodes=1",
+        f"stage1.data_dir={tmp_path / 'data'}",
+        "stage1.variants=[{name:plain,overrides:['env.duration=40','agent.batch_size=8']},"
+        "{name:cue,overrides:['env.duration=40','agent.batch_size=8','env.bev.path_length=20']}]"])
+    runs = bench(cfg, tmp_path)["stage1"]["runs"]
+    assert [r["variant"] for r in runs] == ["plain", "cue"]
+    for r in runs:
+        assert len(r["agreements"]) == 2 and r["survived_non_goal"] in (0, 1)
+        assert set(r["last_check_parts"]) == {"speed", "curvature", "steering_recall",
+                                              "steering_share"}
+    # The cue changes the env config, so its own example demos were recorded.
+    assert len(list((tmp_path / "data").rglob("metadata.json"))) == 2

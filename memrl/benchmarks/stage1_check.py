@@ -1,6 +1,7 @@
-"""Mode B stage 1 side by side: eq. (1) alone vs with the large-margin loss on the demos.
+"""Mode B stage 1 side by side: eq. (1) alone vs with the large-margin loss on the demos, or
+any other variants given as train overrides.
 
-Trains stage 1 on the cached scripted example demos for each margin weight, then drives the
+Trains stage 1 on the cached scripted example demos for each variant, then drives the
 greedy agent through 20 non-goal episodes with 0-5 cars; reports action agreement on the
 held-out demos after every ``check_every`` updates, updates/s, survival and goal counts.
 """
@@ -37,23 +38,31 @@ def _drive(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int]
     return survived, reached
 
 
-def run(updates: int = 800, margin_weights: tuple[float, ...] = (0.0, 1.0), check_every: int = 100,
+DEFAULT_VARIANTS: list[dict[str, Any]] = [
+    {"name": "td_only", "overrides": ["mode.stage1.margin_weight=0"]},
+    {"name": "margin", "overrides": []},
+]
+"""Stage-1 variants compared by default: eq. (1) alone, and with the large-margin loss."""
+
+
+def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_every: int = 100,
         episodes: int = 20, data_dir: str | None = None, threads: int = 1) -> dict[str, Any]:
-    """One stage-1 training per margin weight, same demos and seed."""
+    """One stage-1 training per variant (train overrides, e.g. ``env.bev.path_length=20``),
+    same seed; each trains on the cached scripted example demos of its own env config."""
     from memrl.configs import register_configs
     from memrl.data.demos import ensure_example_demos, load_demos
     from memrl.dqn.loop import Trainer
 
     register_configs()
     out: dict[str, Any] = {"updates": updates, "episodes": episodes, "runs": []}
-    for weight in margin_weights:
+    for variant in variants or DEFAULT_VARIANTS:
+        name, overrides = str(variant["name"]), list(variant.get("overrides") or [])
         GlobalHydra.instance().clear()
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             cfg = compose("train", ["+mode=B", "progress=false", "logger=none",
                                     f"agent.threads={threads}", f"mode.stage1.max_updates={updates}",
                                     f"mode.stage1.check_every={check_every}",
-                                    "mode.stage1.criterion=max_updates",
-                                    f"mode.stage1.margin_weight={weight}"])
+                                    "mode.stage1.criterion=max_updates", *overrides])
         env_cfg: dict[str, Any] = OmegaConf.to_container(cfg.env, resolve=True)  # type: ignore[assignment]
         data = Path(data_dir) if data_dir else Path(os.environ.get("MEMRL_ROOT", ".")) / "outputs" / "data"
         demos = load_demos(ensure_example_demos(env_cfg, data), env_cfg=env_cfg)
@@ -64,7 +73,9 @@ def run(updates: int = 800, margin_weights: tuple[float, ...] = (0.0, 1.0), chec
             trainer.run_stage1()
             wall = time.perf_counter() - start
             survived, reached = _drive(trainer.learner.qnet, env_cfg, episodes)
-        out["runs"].append({"margin_weight": weight, "demos": len(demos),
+        out["runs"].append({"variant": name, "overrides": list(overrides),
+                            "margin_weight": float(cfg.mode.stage1.margin_weight),
+                            "demos": len(demos),
                             "agreements": [round(a, 3) for a in trainer.stage1.agreements],
                             "last_check_parts": {k: round(v, 3) for k, v in
                                                  trainer.stage1.parts[-1].items()},
