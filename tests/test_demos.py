@@ -281,3 +281,22 @@ def test_record_example_and_bad_options(compose_cfg, tmp_path):
         record(compose_cfg("record", [*base, "keep=some"]))
     with pytest.raises(ValueError, match="example"):
         record(compose_cfg("record", [*base, "example=true", "demos=human"]))
+
+
+def test_dataset_recorded_before_a_later_key_still_loads(copy):
+    """A dataset whose stored env config predates ``bev.path_length`` (the key is absent)
+    loads into the default env, keeps its hash, and is refused by an env that draws the path."""
+    import hashlib
+
+    meta_file = copy / "metadata.json"
+    meta = json.loads(meta_file.read_text())
+    assert meta["env_config"]["bev"].pop("path_length") == 0.0
+    # The hash as the version without the key computed it: over every stored key.
+    old = demos_mod._canonical({k: v for k, v in meta["env_config"].items()
+                                if k not in demos_mod.EPISODE_KEYS})
+    text = json.dumps(old, sort_keys=True, separators=(",", ":"))
+    meta["env_config_hash"] = hashlib.sha256(text.encode()).hexdigest()
+    meta_file.write_text(json.dumps(meta))
+    assert len(load_demos(copy, env_cfg=SHORT)) == len(load_demos(copy))
+    with pytest.raises(DemoDatasetError, match="bev"):
+        load_demos(copy, env_cfg={**SHORT, "bev": {"path_length": 20.0}})

@@ -76,9 +76,21 @@ def _canonical(value: Any) -> Any:
     return value
 
 
+LATER_KEYS: dict[tuple[str, ...], Any] = {("bev", "path_length"): 0.0}
+"""Env keys added after datasets were first recorded, with the value that draws what older
+versions drew: at that value a key is left out of the hash, so older datasets (and their
+hashes) stay valid; any other value changes the hash."""
+
+
 def hashed_env_config(env_cfg: EnvCfg) -> dict[str, Any]:
     """The part of the validated env config that :func:`env_config_hash` covers."""
     values = dataclasses.asdict(_env_values(env_cfg))
+    for (*parents, leaf), neutral in LATER_KEYS.items():
+        node = values
+        for key in parents:
+            node = node[key]
+        if node.get(leaf) == neutral:
+            del node[leaf]
     return _canonical({k: v for k, v in values.items() if k not in EPISODE_KEYS})
 
 
