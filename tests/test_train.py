@@ -138,6 +138,27 @@ def test_resume_refuses_a_checkpoint_from_another_config(compose_cfg, tmp_path):
         train(other)
 
 
+def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(compose_cfg,
+                                                                            tmp_path):
+    """A checkpoint whose config predates agent.precision/agent.overlap: resuming it with the
+    new defaults is refused naming both; with the old behaviour's values it resumes."""
+    legacy = ["agent.precision=float32", "agent.overlap=false"]
+    train(compose_cfg("train", TINY + ["total_episodes=1", *legacy]), tmp_path)
+    state_file = tmp_path / "checkpoints" / "last" / "state.pt"
+    state = torch.load(state_file, weights_only=False)
+    for key in ("precision", "overlap"):
+        del state["config"]["agent"][key]
+    del state["config"]["env"]["bev"]["path_length"]
+    torch.save(state, state_file)
+    with pytest.raises(ckpt.CheckpointError, match="agent.overlap") as err:
+        train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
+    assert "agent.precision: 'float32' (checkpoint) vs 'auto' (now)" in str(err.value)
+    assert "path_length" not in str(err.value)
+    resumed = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}",
+                                                 *legacy]))
+    assert resumed.resumed_from_episode == 1 and resumed.episodes == 2
+
+
 def test_resume_needs_a_complete_checkpoint(compose_cfg, tmp_path):
     (tmp_path / "checkpoints" / "last").mkdir(parents=True)
     cfg = compose_cfg("train", TINY + [f"resume={tmp_path}"])

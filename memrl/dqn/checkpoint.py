@@ -16,6 +16,27 @@ RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_
 """Config keys that may differ between a run and its resumption (outputs and budgets)."""
 
 
+LEGACY_VALUES: dict[str, Any] = {
+    "agent": {"precision": "float32", "overlap": False},
+    "env": {"bev": {"path_length": 0.0}},
+}
+"""Keys added to the config after checkpoints were first written, at the value that does what
+the versions before them did: a checkpoint without a key is compared as if it held this
+value, so resuming it asks for exactly that value (``agent.overlap=false`` ...)."""
+
+
+def with_legacy_values(config: dict[str, Any], legacy: dict[str, Any] = LEGACY_VALUES,
+                       ) -> dict[str, Any]:
+    """``config`` with the keys of ``legacy`` that it lacks filled in (nested)."""
+    out = dict(config)
+    for key, value in legacy.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = with_legacy_values(out[key], value)
+        elif key not in out and not isinstance(value, dict):
+            out[key] = value
+    return out
+
+
 class CheckpointError(ValueError):
     """A checkpoint is missing, corrupt or from another config."""
 
@@ -84,8 +105,8 @@ def load_state(ckpt: Path, cfg: DictConfig | None = None) -> dict[str, Any]:
     except Exception as err:  # torch raises several types for a truncated or foreign file
         raise CheckpointError(f"{ckpt / 'state.pt'}: unreadable checkpoint ({err})") from err
     if cfg is not None:
-        diff = config_diff(state["config"], comparable(cfg))
+        diff = config_diff(with_legacy_values(state["config"]), comparable(cfg))
         if diff:
-            raise CheckpointError(f"{ckpt}: checkpoint made under another config:\n  "
-                                  + "\n  ".join(diff))
+            raise CheckpointError(f"{ckpt}: checkpoint made under another config (resume with "
+                                  "the checkpoint's values as overrides):\n  " + "\n  ".join(diff))
     return state
