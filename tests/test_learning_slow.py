@@ -46,6 +46,7 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
         reached += int(out["next", "reached_target"].any())
     report = {"demos": len(demos), "stage1_updates": trainer.stage1.updates,
               "stop": trainer.stage1.stop_reason, "agreements": trainer.stage1.agreements,
+              "last_check_parts": trainer.stage1.parts[-1],
               "wall_s": round(wall, 1), "updates_per_s": round(trainer.stage1.updates / wall, 2),
               "survived_of_20": survived, "reached_of_20": reached}
     print(json.dumps(report))
