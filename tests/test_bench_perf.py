@@ -142,3 +142,15 @@ def test_bench_stage1_reports_each_variant(compose_cfg, tmp_path):
                                               "steering_share"}
     # The cue changes the env config, so its own example demos were recorded.
     assert len(list((tmp_path / "data").rglob("metadata.json"))) == 2
+
+
+def test_auto_precision_follows_the_cpu(monkeypatch):
+    from memrl.dqn import learner as learner_mod
+
+    monkeypatch.setattr(learner_mod, "native_bf16", lambda: False)
+    assert learner_mod.conv_dtype("auto") is None
+    monkeypatch.setattr(learner_mod, "native_bf16", lambda: True)
+    assert learner_mod.conv_dtype("auto") is torch.bfloat16
+    assert learner_mod.conv_dtype("float32") is None
+    with pytest.raises(ValueError, match="agent.precision"):
+        learner_mod.conv_dtype("float16")

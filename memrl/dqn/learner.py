@@ -25,12 +25,19 @@ def conv_dtype(precision: str) -> torch.dtype | None:
     """The Q-network's conv trunk dtype for ``agent.precision`` (None: float32)."""
     if precision == "bfloat16":
         return torch.bfloat16
-    if precision == "auto" and torch.backends.mkldnn.is_available() \
-            and torch.ops.mkldnn._is_mkldnn_bf16_supported():
-        return torch.bfloat16
     if precision not in ("auto", "float32"):
         raise ValueError(f"agent.precision: unknown {precision!r} (auto, float32, bfloat16)")
-    return None
+    return torch.bfloat16 if precision == "auto" and native_bf16() else None
+
+
+def native_bf16() -> bool:
+    """Whether oneDNN runs bfloat16 natively on this CPU (AVX512-BF16, AMX...); False where
+    torch lacks the check."""
+    try:
+        return bool(torch.backends.mkldnn.is_available()
+                    and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
 
 
 def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32)) -> bool:
