@@ -53,6 +53,9 @@ def record(cfg: DictConfig) -> RecordSummary:
         raise ValueError(f"record 'keep': expected stable or all, got {cfg.keep!r}")
     if int(cfg.episodes) < 1:
         raise ValueError(f"record 'episodes': need >= 1, got {cfg.episodes!r}")
+    tail = cfg.get("tail_steps")
+    if tail is not None and (not isinstance(tail, int) or tail < 0):
+        raise ValueError(f"record 'tail_steps': need null or an integer >= 0, got {tail!r}")
     start = time.perf_counter()
     started = datetime.now(UTC).replace(microsecond=0)
     stopped = False
@@ -70,9 +73,9 @@ def record(cfg: DictConfig) -> RecordSummary:
         policy = instantiate(cfg.demos.policy)
         path, rec = record_to_dataset(
             cfg.env, policy, cfg.out, episodes=int(cfg.episodes), seed=int(cfg.seed),
-            keep_stable=cfg.keep == "stable", source=str(cfg.demos.source),
-            render=bool(getattr(policy, "needs_render", False)), progress=bool(cfg.progress),
-            overwrite=bool(cfg.overwrite),
+            keep_stable=cfg.keep == "stable", tail_steps=tail,
+            source=str(cfg.demos.source), render=bool(getattr(policy, "needs_render", False)),
+            progress=bool(cfg.progress), overwrite=bool(cfg.overwrite),
             extra={"policy": OmegaConf.to_container(cfg.demos.policy, resolve=True)})
         stats, stopped = rec.stats(), rec.stopped_early
     size = dataset_bytes(path) if path is not None else 0

@@ -26,9 +26,10 @@ from memrl.data.demos import (
     save_demos,
     transition_spec,
 )
-from memrl.data.recording import record_to_dataset
+from memrl.data.recording import reached_index, record_episodes, record_to_dataset
 from memrl.data.transitions import TRANSITION_KEYS
-from memrl.envs.torchrl_env import make_env
+from memrl.envs.torchrl_env import make_env, unwrap
+from memrl.modules.policy import PolicyModule
 from memrl.modules.scripted import ScriptedDriver
 from memrl.record import record
 
@@ -269,6 +270,33 @@ def test_record_stable_only_drops_unfinished_episodes(compose_cfg, tmp_path):
     summary = record(cfg)
     assert summary.path is None and summary.recorded["episodes"] == 1 and summary.kept["episodes"] == 0
     assert not (tmp_path / "none").exists()
+
+
+def test_record_tail_steps_keeps_the_manoeuvre_and_a_fixed_tail(compose_cfg, tmp_path):
+    """tail_steps=5: each kept episode is stored up to 5 steps after the step that reached
+    the target lane (a prefix of the whole episode); it is still judged on the whole episode."""
+    cfg = {"duration": 80, "vehicles_count": 0, "initial_lane": "non_goal"}
+    whole = record_episodes(cfg, ScriptedDriver(), episodes=2, seed=7)
+    cut = record_episodes(cfg, ScriptedDriver(), episodes=2, seed=7, tail_steps=5)
+    assert whole.episodes == cut.episodes and whole.kept == cut.kept == [0, 1]
+    env = make_env(cfg)
+    for i, (full, part) in enumerate(zip(whole.transitions, cut.transitions, strict=True)):
+        rollout = env.rollout(80, PolicyModule(ScriptedDriver(), unwrap(env)), auto_reset=False,
+                              tensordict=env.reset(seed=7 + i), break_when_any_done=True)
+        reached = reached_index(rollout)
+        assert reached is not None and reached + 6 < len(full) == 80  # it went on after the tail
+        assert len(part) == reached + 6
+        assert (part == full[:reached + 6]).all()
+        assert not part["next", "terminated"].any()  # the cut end bootstraps
+    env.close()
+    out = tmp_path / "tail"
+    summary = record(compose_cfg("record", ["episodes=1", "env.duration=80", "env.vehicles_count=0",
+                                            "env.initial_lane=non_goal", "tail_steps=5",
+                                            f"out={out}", "progress=false"]))
+    assert read_metadata(out)["tail_steps"] == 5 and len(load_demos(out)) < 80
+    assert summary.kept["episodes"] == 1
+    with pytest.raises(ValueError, match="tail_steps"):
+        record(compose_cfg("record", ["tail_steps=-1", f"out={tmp_path / 'bad'}"]))
 
 
 def test_record_example_and_bad_options(compose_cfg, tmp_path):

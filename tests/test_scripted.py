@@ -117,6 +117,25 @@ def test_waits_for_a_gap_before_moving_over():
     assert abs(other_x[leaving] - t["x"][leaving]) > 5.0 + 3.0
 
 
+@pytest.mark.parametrize("window", [0.0, 12.0])
+def test_merge_window_waits_until_the_seen_gap_is_clear(window):
+    """A car 10 m ahead in the target lane at the agent's speed: the kinematic test alone
+    merges at once (10 m > 4 m + 0.5 s x 7 m/s); with a 12 m window the driver first drops
+    back until the bumper gap exceeds 12 m."""
+    trace = Trace(target=1)
+    trace.driver.merge_window = window
+    trace.env.place_agent(500.0, 0.0, speed=7.0)
+    trace.env.add_car(515.0, W, speed=7.0)  # bumper gap 515 - 2.5 - (500 + 2.5) = 10 m
+    t = trace.run(300)
+    assert not t["collided"].any() and t["reached"][-1]
+    leaving = np.flatnonzero(t["y"] > 0.3)[0]  # off its own centre line toward the target
+    gap = 515.0 + 7.0 * 0.1 * (leaving + 1) - 5.0 - t["x"][leaving]
+    if window:
+        assert gap > window and leaving > 10
+    else:
+        assert gap < 12.0 and leaving < 10
+
+
 def test_hydra_config_builds_the_default_driver(compose_cfg):
     cfg = compose_cfg("record", ["demos=scripted"])
     built = instantiate(cfg.demos.policy)

@@ -52,10 +52,15 @@ def test_smoke_run_of_each_mode_writes_its_outputs(compose_cfg, tmp_path, demos,
 def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
         compose_cfg, tmp_path, demos):
     cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=agreement",
-                                       "mode.stage1.agreement=0.0", "mode.stage1.max_updates=100"])
+                                       "mode.stage1.agreement=0.0", "mode.stage1.max_updates=100",
+                                       "mode.stage1.lr=0.003"])
     trainer = Trainer(cfg, tmp_path, demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
+    assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {0.003}
     trainer.run_stage1()
+    # stage 2 gets a fresh Adam at agent.lr
+    assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {cfg.agent.lr}
+    assert not trainer.learner.optimizer.state
     # agreement >= 0 holds at the first check: stage 1 stops after check_every updates
     assert trainer.stage1.updates == 4 and trainer.stage1.stop_reason.startswith("agreement")
     assert trainer.counters.stage == "B2" and len(trainer.buffer) == 0
@@ -149,11 +154,12 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
     for key in ("precision", "overlap"):
         del state["config"]["agent"][key]
     del state["config"]["env"]["bev"]["path_length"]
+    del state["config"]["mode"]["stage1"]["lr"]
     torch.save(state, state_file)
     with pytest.raises(ckpt.CheckpointError, match="agent.overlap") as err:
         train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
     assert "agent.precision: 'float32' (checkpoint) vs 'auto' (now)" in str(err.value)
-    assert "path_length" not in str(err.value)
+    assert "path_length" not in str(err.value) and "stage1.lr" not in str(err.value)
     resumed = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}",
                                                  *legacy]))
     assert resumed.resumed_from_episode == 1 and resumed.episodes == 2
@@ -168,7 +174,8 @@ def test_resume_needs_a_complete_checkpoint(compose_cfg, tmp_path):
 
 @pytest.mark.parametrize(("override", "key"), [("agent.gamma=1.5", "agent.gamma"),
                                                ("mode.sampling=random", "mode.sampling"),
-                                               ("agent.eps_start=0.01", "agent.eps_start")])
+                                               ("agent.eps_start=0.01", "agent.eps_start"),
+                                               ("mode.stage1.lr=0", "mode.stage1.lr")])
 def test_bad_training_values_name_the_key(compose_cfg, tmp_path, override, key):
     cfg = compose_cfg("train", TINY + [override])
     with pytest.raises(TrainConfigError, match=key.replace(".", r"\.")):

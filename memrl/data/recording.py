@@ -82,8 +82,15 @@ class Recording:
                 "kept": summarize([self.episodes[i] for i in self.kept])}
 
 
+def reached_index(rollout: TensorDict) -> int | None:
+    """Index of the first step of a rollout after which the target lane was reached (None: never)."""
+    hits = rollout["next", "reached_target"].reshape(-1).nonzero()
+    return int(hits[0]) if len(hits) else None
+
+
 def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, seed: int = 0,
-                    keep_stable: bool = True, frame_stack: int = 4, render: bool = False,
+                    keep_stable: bool = True, tail_steps: int | None = None,
+                    frame_stack: int = 4, render: bool = False,
                     progress: bool = False) -> Recording:
     """Run ``episodes`` episodes of ``policy`` and keep the transitions of the chosen ones.
 
@@ -94,6 +101,11 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
         seed: episode ``i`` is reset with ``seed + i``.
         keep_stable: keep only episodes without collision that reached the target lane;
             False keeps all.
+        tail_steps: keep only the first ``tail_steps`` transitions after the step that reached
+            the target lane (None: the whole episode). The episode is still run to its end and
+            judged stable on the whole of it; the stored part ends without a terminal flag, so
+            its last transition bootstraps. This puts the prior knowledge on the manoeuvre
+            (waiting for a gap, changing, settling) instead of on long lane keeping.
         frame_stack: stacked frames per observation.
         render: build the env with ``render_mode='rgb_array'`` (for a policy that shows the
             scene, like the keyboard recorder).
@@ -123,6 +135,9 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
             rec.episodes.append(stats)
             if stats.stable or not keep_stable:
                 rec.kept.append(i)
+                reached = reached_index(rollout) if tail_steps is not None else None
+                if reached is not None and tail_steps is not None:
+                    rollout = rollout[:reached + 1 + tail_steps]
                 rec.transitions.append(to_transitions(rollout, is_demo=True))
     finally:
         env.close()
@@ -169,22 +184,24 @@ def env_config_values(env_cfg: EnvCfg) -> dict[str, Any]:
 
 
 def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.PathLike, *,
-                      episodes: int, seed: int = 0, keep_stable: bool = True, source: str,
+                      episodes: int, seed: int = 0, keep_stable: bool = True,
+                      tail_steps: int | None = None, source: str,
                       frame_stack: int = 4, render: bool = False, progress: bool = False,
                       overwrite: bool = False, extra: Mapping[str, Any] | None = None,
                       ) -> tuple[Path | None, Recording]:
     """Record episodes and save the kept ones as a dataset (None when nothing was kept).
 
     Args:
-        env_cfg, policy, episodes, seed, keep_stable, frame_stack, render, progress: as
-            :func:`record_episodes`.
+        env_cfg, policy, episodes, seed, keep_stable, tail_steps, frame_stack, render,
+            progress: as :func:`record_episodes`.
         path: dataset folder to write.
         source: who made the transitions (``scripted``, ``human``, ...), stored in the metadata.
         overwrite: replace an existing dataset at ``path``.
         extra: more metadata entries (e.g. the policy's config).
     """
     rec = record_episodes(env_cfg, policy, episodes=episodes, seed=seed, keep_stable=keep_stable,
-                          frame_stack=frame_stack, render=render, progress=progress)
+                          tail_steps=tail_steps, frame_stack=frame_stack, render=render,
+                          progress=progress)
     if not rec.transitions:
         log.warning("no episode kept out of %d recorded; nothing saved", len(rec.episodes))
         return None, rec
@@ -193,6 +210,7 @@ def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.Pat
         "source": source,
         "seed": seed,
         "keep": "stable" if keep_stable else "all",
+        "tail_steps": tail_steps,
         "env_config": env_config_values(env_cfg),
         "frame_stack": frame_stack,
         "counts": {"episodes": len(kept), "episodes_recorded": len(rec.episodes)},

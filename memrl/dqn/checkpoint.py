@@ -19,6 +19,7 @@ RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_
 LEGACY_VALUES: dict[str, Any] = {
     "agent": {"precision": "float32", "overlap": False},
     "env": {"bev": {"path_length": 0.0}},
+    "mode": {"stage1": {"lr": None}},
 }
 """Keys added to the config after checkpoints were first written, at the value that does what
 the versions before them did: a checkpoint without a key is compared as if it held this

@@ -103,6 +103,9 @@ class Stage1Config:
     see the README)."""
     margin: float = 0.8
     """Margin of that loss [Q units]."""
+    lr: float | None = None
+    """Adam learning rate of stage 1 (None: ``agent.lr``). Stage 2 starts a fresh Adam at
+    ``agent.lr`` whatever this is."""
 
 
 @dataclass
@@ -166,6 +169,7 @@ def check_train_config(cfg: DictConfig) -> None:
           "mode.stage1.criterion", f"unknown criterion {s1.criterion!r}")
     _need(0 < s1.holdout_fraction < 1, "mode.stage1.holdout_fraction", "must be in (0, 1)")
     _need(s1.max_updates >= 1 and s1.check_every >= 1, "mode.stage1.max_updates", "must be >= 1")
+    _need(s1.lr is None or s1.lr > 0, "mode.stage1.lr", f"must be > 0 or null, got {s1.lr}")
     s2 = m.stage2
     _need(0 <= s2.eps_end <= s2.eps_start <= 1, "mode.stage2.eps_start",
           "need 0 <= eps_end <= eps_start <= 1")

@@ -159,6 +159,11 @@ class Learner:
         self.target_updater.load_state_dict(state["target_updater"])
         self.updates = int(state["updates"])
 
+    def set_lr(self, lr: float) -> None:
+        """Learning rate of the current optimizer (mode B stage 1 may use its own)."""
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     def reset_optimizer(self) -> None:
         """Fresh Adam moments (mode B stage 2 starts a new optimisation)."""
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)

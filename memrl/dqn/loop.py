@@ -159,6 +159,8 @@ class Trainer:
             assert self.demos is not None
             self.learner.margin_weight = float(m.stage1.margin_weight)
             self.learner.margin = float(m.stage1.margin)
+            if m.stage1.lr is not None:  # a resumed run gets the same from the optimizer state
+                self.learner.set_lr(float(m.stage1.lr))
             train, self.held_out = split_demos(self.demos, float(m.stage1.holdout_fraction),
                                                int(self.cfg.seed))
             self.buffer = demo_buffer(train, batch, compact=compact)

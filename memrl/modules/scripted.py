@@ -93,6 +93,11 @@ class ScriptedDriver(DrivingPolicy):
         commit_margin: fraction of the safety gaps still required once a change has started.
         band_margin: lateral clearance under which a car counts as in the agent's way [m].
         speed_tolerance: speed error below which the speed is kept [m/s].
+        merge_window: when > 0, a lane change also starts only once no car of the
+            destination lane is within this distance [m] ahead of the agent's front or behind
+            its rear bumper, and the driver lines up with gaps that leave it: a rule on
+            positions, which the agent can see in its frames, unlike the relative speeds the
+            kinematic test uses. 0: the kinematic test alone.
     """
 
     def __init__(
@@ -116,6 +121,7 @@ class ScriptedDriver(DrivingPolicy):
         commit_margin: float = 0.5,
         band_margin: float = 0.3,
         speed_tolerance: float = 0.05,
+        merge_window: float = 0.0,
     ) -> None:
         self.cruise_speed = cruise_speed
         self.min_speed = min_speed
@@ -135,6 +141,7 @@ class ScriptedDriver(DrivingPolicy):
         self.commit_margin = commit_margin
         self.band_margin = band_margin
         self.speed_tolerance = speed_tolerance
+        self.merge_window = merge_window
         self.home_lane = 0
         """Lane the car keeps (or leaves, while ``changing``)."""
         self.changing = False
@@ -228,6 +235,10 @@ class ScriptedDriver(DrivingPolicy):
         scale = self.commit_margin if relaxed else 1.0
         v = scene.ego_v
         mask = scene.in_band(lane * w - 0.5 * w, lane * w + 0.5 * w, 0.0)
+        window = scale * self.merge_window
+        if window > 0 and bool(np.any(mask & (scene.back < scene.ego_front + window)
+                                      & (scene.front > scene.ego_back - window))):
+            return False
         for i in np.flatnonzero(mask):
             if scene.back[i] >= scene.ego_front:
                 gap, closing = scene.back[i] - scene.ego_front, v - scene.vx[i]
@@ -258,13 +269,13 @@ class ScriptedDriver(DrivingPolicy):
             lo, hi, lo_speed, hi_speed, speed = -np.inf, np.inf, 0.0, 0.0, self.cruise_speed
             if rear is not None:
                 lo_speed = float(scene.vx[rear])
-                lo = (float(scene.front[rear]) + self.rear_gap + self.align_buffer
-                      + self.time_headway * lo_speed)
+                lo = (float(scene.front[rear]) + self.align_buffer
+                      + max(self.rear_gap + self.time_headway * lo_speed, self.merge_window))
                 speed = max(speed, lo_speed)
             if front is not None:
                 hi_speed = float(scene.vx[front])
-                hi = (float(scene.back[front]) - length - self.front_gap - self.align_buffer
-                      - self.time_headway * scene.ego_v)
+                hi = (float(scene.back[front]) - length - self.align_buffer
+                      - max(self.front_gap + self.time_headway * scene.ego_v, self.merge_window))
                 speed = min(speed, hi_speed)
             slots.append((lo, hi, lo_speed, hi_speed, speed))
         return slots
