@@ -201,7 +201,8 @@ def test_env_mismatch_names_the_differing_keys(dataset):
     message = str(err.value)
     assert "metadata.json" in message and "lane_width" in message and "bev" in message
     # episode-drawing keys do not matter: demos made from other starts still fit
-    load_demos(path, env_cfg={**SHORT, "initial_lane": "non_goal", "vehicles_count": 5})
+    load_demos(path, env_cfg={**SHORT, "initial_lane": "non_goal", "vehicles_count": 5,
+                              "initial_heading": 0.2, "initial_offset": 0.5})
 
 
 def test_env_hash_is_stable_across_spellings():

@@ -174,6 +174,28 @@ def test_initial_lane_modes():
     assert 15 <= sum(on_target) <= 45  # about half of 60
 
 
+def test_initial_pose_perturbation_stays_in_its_bounds_and_is_off_by_default():
+    poses = []
+    for seed in range(30):
+        env = LaneChangeEnv()
+        env.reset(seed=seed)
+        car = env.vehicle
+        assert car.heading == 0.0 and car.curvature == 0.0
+        assert car.position[1] == env.current_lane() * 4.0
+        env = LaneChangeEnv(config={"initial_offset": 0.8, "initial_heading": 0.2,
+                                    "initial_curvature": 0.03})
+        env.reset(seed=seed)
+        car = env.vehicle
+        offset = car.position[1] - env.current_lane() * 4.0
+        poses.append((offset, car.heading, car.curvature))
+    offsets, headings, curvatures = np.array(poses).T
+    assert np.abs(offsets).max() <= 0.8 and np.abs(headings).max() <= 0.2
+    assert np.abs(curvatures).max() <= 0.03
+    # drawn, not fixed: both signs and a spread
+    for values, bound in ((offsets, 0.8), (headings, 0.2), (curvatures, 0.03)):
+        assert values.min() < -0.3 * bound and values.max() > 0.3 * bound
+
+
 def test_spawned_cars_do_not_overlap_and_count_follows_range():
     counts = set()
     for seed in range(40):
@@ -215,6 +237,8 @@ def test_five_cars_by_default_in_both_lanes():
         ({"bev": {"width": 2}}, "bev.width"),
         ({"reward": {"colision": -5}}, "reward.colision"),
         ({"opponent": "nobody"}, "opponent"),
+        ({"initial_heading": 0.6}, "initial_heading"),
+        ({"initial_offset": 1.5}, "initial_offset"),
     ],
 )
 def test_bad_config_names_the_key(config, key):

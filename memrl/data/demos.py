@@ -42,11 +42,13 @@ FORMAT_VERSION = 1
 METADATA_FILE = "metadata.json"
 TRANSITIONS_DIR = "transitions"
 EPISODE_KEYS = (
-    "target_lane", "initial_lane", "initial_speed", "vehicles_count", "other_speed",
+    "target_lane", "initial_lane", "initial_speed", "initial_offset", "initial_heading",
+    "initial_curvature", "vehicles_count", "other_speed",
     "spawn_ahead", "spawn_behind", "spawn_gap", "spawn_attempts", "opponent", "scene",
 )
 """Env-config keys left out of :func:`env_config_hash`: they choose which episodes are drawn
-(start and target lanes, how many other cars, where, how fast and who drives them) or only
+(start and target lanes, the agent's starting pose, how many other cars, where, how fast and
+who drives them) or only
 the picture for people, not what a transition means. Demonstrations recorded with
 ``initial_lane=non_goal`` therefore load into a run with ``initial_lane=random``; the full
 config is still stored in the metadata."""

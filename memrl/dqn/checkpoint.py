@@ -18,7 +18,8 @@ RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_
 
 LEGACY_VALUES: dict[str, Any] = {
     "agent": {"precision": "float32", "overlap": False},
-    "env": {"bev": {"path_length": 0.0}},
+    "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
+            "initial_curvature": 0.0},
     "mode": {"stage1": {"lr": None}},
 }
 """Keys added to the config after checkpoints were first written, at the value that does what

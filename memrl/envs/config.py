@@ -114,7 +114,15 @@ class LaneChangeConfig:
     curvature_limit: float = 0.05
     """Clamp of |curvature| [rad/m]; 0.05 rad/m is a 20 m turning radius."""
     initial_speed: list[float] = field(default_factory=lambda: [6.0, 9.0])
-    """Agent's initial speed drawn uniformly in this range [m/s]; initial curvature is 0."""
+    """Agent's initial speed drawn uniformly in this range [m/s]."""
+    initial_offset: float = 0.0
+    """Agent's initial lateral offset from its lane centre, uniform in [-x, x] [m] (0: on the
+    centre line). With ``initial_heading`` and ``initial_curvature``, off-nominal starts that
+    make a recorded driver show how it recovers (prior knowledge); off by default."""
+    initial_heading: float = 0.0
+    """Agent's initial heading, uniform in [-x, x] [rad] (0: along the road)."""
+    initial_curvature: float = 0.0
+    """Agent's initial curvature, uniform in [-x, x] [rad/m] (0: straight)."""
     target_lane: Any = "random"
     """Target lane index, or 'random' (uniform over lanes, drawn each episode)."""
     initial_lane: str = "random"
@@ -204,6 +212,11 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
     for key in ("speed_limits", "initial_speed", "other_speed"):
         _check_range(cfg, key)
     _check(cfg.curvature_limit > 0, "curvature_limit", "must be > 0")
+    _check(0 <= cfg.initial_offset < 0.5 * (cfg.lane_width - cfg.vehicle_width), "initial_offset",
+           "need 0 <= initial_offset < (lane_width - vehicle_width) / 2")
+    _check(0 <= cfg.initial_heading < 0.5, "initial_heading", "need 0 <= initial_heading < 0.5 rad")
+    _check(0 <= cfg.initial_curvature <= cfg.curvature_limit, "initial_curvature",
+           "need 0 <= initial_curvature <= curvature_limit")
     target = cfg.target_lane
     _check(
         target == "random" or (isinstance(target, int) and 0 <= target < cfg.lanes_count),

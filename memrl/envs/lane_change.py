@@ -129,6 +129,13 @@ class LaneChangeEnv(AbstractEnv):
         lane = self.target_lane if start_on_target else int(rng.choice(others))
         speed = float(rng.uniform(*cfg.initial_speed))
         agent = self._car(np.array([500.0, lane * cfg.lane_width]), speed, "agent")
+        # Drawn only when enabled, so the episodes of a seed stay the same without them.
+        if cfg.initial_offset > 0:
+            agent.position[1] += float(rng.uniform(-cfg.initial_offset, cfg.initial_offset))
+        if cfg.initial_heading > 0:
+            agent.heading = float(rng.uniform(-cfg.initial_heading, cfg.initial_heading))
+        if cfg.initial_curvature > 0:
+            agent.curvature = float(rng.uniform(-cfg.initial_curvature, cfg.initial_curvature))
         agent.target_lane = self.target_lane
         self.vehicle = agent
         self.road.vehicles.append(agent)
