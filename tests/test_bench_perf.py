@@ -133,14 +133,21 @@ def test_bench_stage1_reports_each_variant(compose_cfg, tmp_path):
         "benchmarks=[stage1]", "stage1.updates=2", "stage1.check_every=1", "stage1.episodes=1",
         f"stage1.data_dir={tmp_path / 'data'}",
         "stage1.variants=[{name:plain,overrides:['env.duration=40','agent.batch_size=8']},"
-        "{name:cue,overrides:['env.duration=40','agent.batch_size=8','env.bev.path_length=20']}]"])
+        "{name:cue,overrides:['env.duration=40','agent.batch_size=8','env.bev.path_length=20']},"
+        "{name:own,overrides:['env.duration=40','agent.batch_size=8'],demos:{episodes:2,"
+        "tail_steps:3,driver:{merge_window:12.0},env:{initial_lane:non_goal,vehicles_count:0}}}]"])
     runs = bench(cfg, tmp_path)["stage1"]["runs"]
-    assert [r["variant"] for r in runs] == ["plain", "cue"]
+    assert [r["variant"] for r in runs] == ["plain", "cue", "own"]
     for r in runs:
         assert len(r["agreements"]) == 2 and r["survived_non_goal"] in (0, 1)
+        assert r["both_non_goal"] <= min(r["survived_non_goal"], r["reached_non_goal"])
         assert set(r["last_check_parts"]) == {"speed", "curvature", "steering_recall",
                                               "steering_share"}
-    # The cue changes the env config, so its own example demos were recorded.
+    # its own recording: 2 stable episodes, each cut 3 steps after reaching the target lane
+    assert runs[0]["demo_recipe"] == "example" and runs[2]["demo_recipe"]["tail_steps"] == 3
+    assert runs[2]["demos"] < 2 * 40
+    # The cue changes the env config, so its own example demos were recorded; "own" recorded
+    # into its temporary folder.
     assert len(list((tmp_path / "data").rglob("metadata.json"))) == 2
 
 

@@ -22,9 +22,11 @@ def test_quality_on_fixed_seeds_non_goal_start():
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("driver", [{}, {"merge_window": 12.0, "speed_tolerance": 0.3}])
 @pytest.mark.parametrize("initial_lane", ["random", "non_goal"])
-def test_quality_bar_over_100_episodes(initial_lane):
-    stats = summarize(drive_episodes({**EVAL, "initial_lane": initial_lane}, ScriptedDriver(), range(100)))
+def test_quality_bar_over_100_episodes(initial_lane, driver):
+    stats = summarize(drive_episodes({**EVAL, "initial_lane": initial_lane},
+                                     ScriptedDriver(**driver), range(100)))
     assert stats["survival"] >= 95 and stats["goal"] >= 95, stats
 
 

@@ -1,9 +1,10 @@
 """Mode B stage 1 side by side: eq. (1) alone vs with the large-margin loss on the demos, or
 any other variants given as train overrides.
 
-Trains stage 1 on the cached scripted example demos for each variant, then drives the
-greedy agent through 20 non-goal episodes with 0-5 cars; reports action agreement on the
-held-out demos after every ``check_every`` updates, updates/s, survival and goal counts.
+Trains stage 1 on the cached scripted example demos for each variant (or on demos the variant
+records itself, see :func:`record_variant_demos`), then drives the greedy agent through 20
+non-goal episodes with 0-5 cars; reports action agreement on the held-out demos after every
+``check_every`` updates, updates/s, survival, goal, and both in the same episode.
 """
 
 from __future__ import annotations
@@ -21,21 +22,37 @@ from omegaconf import OmegaConf
 CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
 
 
-def _drive(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int]:
+def _drive(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int, int]:
     from memrl.checkpoint import GreedyQPolicy
     from memrl.envs.torchrl_env import make_env, unwrap
     from memrl.modules.policy import PolicyModule
 
     env = make_env({**env_cfg, "vehicles_count": [0, 5], "initial_lane": "non_goal"}, seed=0)
     module = PolicyModule(GreedyQPolicy(qnet), unwrap(env))
-    survived = reached = 0
+    survived = reached = both = 0
     for episode in range(episodes):
         td = env.reset(seed=10_000 + episode)
         out = env.rollout(int(env_cfg.get("duration", 300)), module, tensordict=td,
                           auto_reset=False, break_when_any_done=True)
-        survived += int(not out["next", "collided"].any())
-        reached += int(out["next", "reached_target"].any())
-    return survived, reached
+        ok, goal = not bool(out["next", "collided"].any()), bool(out["next", "reached_target"].any())
+        survived, reached, both = survived + ok, reached + goal, both + (ok and goal)
+    return survived, reached, both
+
+
+def record_variant_demos(env_cfg: dict[str, Any], recipe: dict[str, Any], folder: Path) -> Path:
+    """Record a variant's own scripted demos: ``recipe`` holds ``episodes`` (default 100),
+    ``seed`` (0), ``tail_steps`` (null), ``driver`` (ScriptedDriver keyword arguments) and
+    ``env`` (env values changed for recording only, e.g. ``initial_lane: non_goal``)."""
+    from memrl.data.recording import record_to_dataset
+    from memrl.modules.scripted import ScriptedDriver
+
+    path, rec = record_to_dataset(
+        {**env_cfg, **dict(recipe.get("env") or {})}, ScriptedDriver(**dict(recipe.get("driver") or {})),
+        folder, episodes=int(recipe.get("episodes", 100)), seed=int(recipe.get("seed", 0)),
+        keep_stable=True, tail_steps=recipe.get("tail_steps"), source="scripted")
+    if path is None:
+        raise RuntimeError(f"the scripted driver kept no episode: {rec.stats()['recorded']}")
+    return path
 
 
 DEFAULT_VARIANTS: list[dict[str, Any]] = [
@@ -48,7 +65,8 @@ DEFAULT_VARIANTS: list[dict[str, Any]] = [
 def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_every: int = 100,
         episodes: int = 20, data_dir: str | None = None, threads: int = 1) -> dict[str, Any]:
     """One stage-1 training per variant (train overrides, e.g. ``env.bev.path_length=20``),
-    same seed; each trains on the cached scripted example demos of its own env config."""
+    same seed; each trains on the cached scripted example demos of its own env config, or,
+    when the variant has a ``demos`` recipe, on demos recorded for it."""
     from memrl.configs import register_configs
     from memrl.data.demos import ensure_example_demos, load_demos
     from memrl.dqn.loop import Trainer
@@ -65,20 +83,24 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
                                     "mode.stage1.criterion=max_updates", *overrides])
         env_cfg: dict[str, Any] = OmegaConf.to_container(cfg.env, resolve=True)  # type: ignore[assignment]
         data = Path(data_dir) if data_dir else Path(os.environ.get("MEMRL_ROOT", ".")) / "outputs" / "data"
-        demos = load_demos(ensure_example_demos(env_cfg, data), env_cfg=env_cfg)
         with TemporaryDirectory() as tmp:
-            trainer = Trainer(cfg, Path(tmp), demos)
+            recipe = variant.get("demos")
+            source = record_variant_demos(env_cfg, dict(recipe), Path(tmp) / "demos") \
+                if recipe else ensure_example_demos(env_cfg, data)
+            demos = load_demos(source, env_cfg=env_cfg).to_tensordict()
+            trainer = Trainer(cfg, Path(tmp) / "run", demos)
             trainer._t_start, trainer._frames0, trainer._updates0 = time.perf_counter(), 0, 0
             start = time.perf_counter()
             trainer.run_stage1()
             wall = time.perf_counter() - start
-            survived, reached = _drive(trainer.learner.qnet, env_cfg, episodes)
+            survived, reached, both = _drive(trainer.learner.qnet, env_cfg, episodes)
         out["runs"].append({"variant": name, "overrides": list(overrides),
                             "margin_weight": float(cfg.mode.stage1.margin_weight),
-                            "demos": len(demos),
+                            "demos": len(demos), "demo_recipe": recipe or "example",
                             "agreements": [round(a, 3) for a in trainer.stage1.agreements],
                             "last_check_parts": {k: round(v, 3) for k, v in
                                                  trainer.stage1.parts[-1].items()},
                             "updates_per_s": round(updates / wall, 2), "wall_s": round(wall, 1),
-                            "survived_non_goal": survived, "reached_non_goal": reached})
+                            "survived_non_goal": survived, "reached_non_goal": reached,
+                            "both_non_goal": both})
     return out
