@@ -56,6 +56,9 @@ def record(cfg: DictConfig) -> RecordSummary:
     tail = cfg.get("tail_steps")
     if tail is not None and (not isinstance(tail, int) or tail < 0):
         raise ValueError(f"record 'tail_steps': need null or an integer >= 0, got {tail!r}")
+    noise = cfg.get("action_noise", 0.0)
+    if isinstance(noise, bool) or not isinstance(noise, int | float) or not 0.0 <= noise < 1.0:
+        raise ValueError(f"record 'action_noise': need a probability in [0, 1), got {noise!r}")
     start = time.perf_counter()
     started = datetime.now(UTC).replace(microsecond=0)
     stopped = False
@@ -73,7 +76,7 @@ def record(cfg: DictConfig) -> RecordSummary:
         policy = instantiate(cfg.demos.policy)
         path, rec = record_to_dataset(
             cfg.env, policy, cfg.out, episodes=int(cfg.episodes), seed=int(cfg.seed),
-            keep_stable=cfg.keep == "stable", tail_steps=tail,
+            keep_stable=cfg.keep == "stable", tail_steps=tail, action_noise=float(noise),
             source=str(cfg.demos.source), render=bool(getattr(policy, "needs_render", False)),
             progress=bool(cfg.progress), overwrite=bool(cfg.overwrite),
             extra={"policy": OmegaConf.to_container(cfg.demos.policy, resolve=True)})

@@ -27,9 +27,10 @@ from memrl.data.demos import (
     transition_spec,
 )
 from memrl.data.recording import reached_index, record_episodes, record_to_dataset
-from memrl.data.transitions import TRANSITION_KEYS
+from memrl.data.transitions import TRANSITION_KEYS, to_transitions
 from memrl.envs.torchrl_env import make_env, unwrap
-from memrl.modules.policy import PolicyModule
+from memrl.envs.vehicles import action_index
+from memrl.modules.policy import DrivingPolicy, PerturbedPolicy, PolicyModule
 from memrl.modules.scripted import ScriptedDriver
 from memrl.record import record
 
@@ -298,6 +299,37 @@ def test_record_tail_steps_keeps_the_manoeuvre_and_a_fixed_tail(compose_cfg, tmp
     assert summary.kept["episodes"] == 1
     with pytest.raises(ValueError, match="tail_steps"):
         record(compose_cfg("record", ["tail_steps=-1", f"out={tmp_path / 'bad'}"]))
+
+
+class _Keep(DrivingPolicy):
+    """Always keeps speed and curvature: any other executed action is the recording noise."""
+
+    def act(self, env, pixels):
+        return action_index(0, 0)
+
+
+def test_record_action_noise_stores_only_the_drivers_own_steps(compose_cfg, tmp_path):
+    """action_noise=0.5: about half the steps execute a random action; exactly the steps
+    whose executed action is the driver's are stored, in order, with their real pixels."""
+    cfg = {"duration": 40, "vehicles_count": 0, "initial_lane": "non_goal"}
+    rec = record_episodes(cfg, _Keep(), episodes=1, seed=3, keep_stable=False, action_noise=0.5)
+    stored, stats = rec.transitions[0], rec.episodes[0]
+    env = make_env(cfg)
+    rollout = env.rollout(40, PolicyModule(PerturbedPolicy(_Keep(), 0.5, seed=3), unwrap(env)),
+                          auto_reset=False, tensordict=env.reset(seed=3), break_when_any_done=True)
+    env.close()
+    own = rollout["action"] == action_index(0, 0)
+    assert 5 < stats.perturbed == int((~own).sum()) < stats.steps - 5
+    assert len(stored) == stats.steps - stats.perturbed
+    assert (stored["action"] == action_index(0, 0)).all()
+    assert (stored == to_transitions(rollout[own], is_demo=True)).all()
+    out = tmp_path / "noisy"
+    record(compose_cfg("record", ["episodes=1", "env.duration=40", "env.vehicles_count=0",
+                                  "keep=all", "action_noise=0.25", f"out={out}", "progress=false"]))
+    assert read_metadata(out)["action_noise"] == 0.25 and len(load_demos(out)) < 40
+    for bad in ("1.0", "-0.1"):
+        with pytest.raises(ValueError, match="action_noise"):
+            record(compose_cfg("record", [f"action_noise={bad}", f"out={tmp_path / 'bad'}"]))
 
 
 def test_record_example_and_bad_options(compose_cfg, tmp_path):

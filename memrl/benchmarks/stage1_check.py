@@ -41,15 +41,17 @@ def _drive(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int,
 
 def record_variant_demos(env_cfg: dict[str, Any], recipe: dict[str, Any], folder: Path) -> Path:
     """Record a variant's own scripted demos: ``recipe`` holds ``episodes`` (default 100),
-    ``seed`` (0), ``tail_steps`` (null), ``driver`` (ScriptedDriver keyword arguments) and
-    ``env`` (env values changed for recording only, e.g. ``initial_lane: non_goal``)."""
+    ``seed`` (0), ``tail_steps`` (null), ``action_noise`` (0), ``driver`` (ScriptedDriver
+    keyword arguments) and ``env`` (env values changed for recording only, e.g.
+    ``initial_lane: non_goal``)."""
     from memrl.data.recording import record_to_dataset
     from memrl.modules.scripted import ScriptedDriver
 
     path, rec = record_to_dataset(
         {**env_cfg, **dict(recipe.get("env") or {})}, ScriptedDriver(**dict(recipe.get("driver") or {})),
         folder, episodes=int(recipe.get("episodes", 100)), seed=int(recipe.get("seed", 0)),
-        keep_stable=True, tail_steps=recipe.get("tail_steps"), source="scripted")
+        keep_stable=True, tail_steps=recipe.get("tail_steps"),
+        action_noise=float(recipe.get("action_noise", 0.0)), source="scripted")
     if path is None:
         raise RuntimeError(f"the scripted driver kept no episode: {rec.stats()['recorded']}")
     return path

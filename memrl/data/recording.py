@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from tensordict import TensorDict
 from tqdm import tqdm
 
@@ -22,7 +23,7 @@ from memrl.data.transitions import to_transitions
 from memrl.envs.config import LaneChangeConfig
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
-from memrl.modules.policy import DrivingPolicy, PolicyModule
+from memrl.modules.policy import DrivingPolicy, PerturbedPolicy, PolicyModule
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,8 @@ class EpisodeStats:
     collided: bool
     reached_target: bool
     """All four corners of the car inside the target lane at some step."""
+    perturbed: int = 0
+    """Steps whose executed action was the recording noise's, not the driver's (not stored)."""
 
     @property
     def stable(self) -> bool:
@@ -90,7 +93,7 @@ def reached_index(rollout: TensorDict) -> int | None:
 
 def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, seed: int = 0,
                     keep_stable: bool = True, tail_steps: int | None = None,
-                    frame_stack: int = 4, render: bool = False,
+                    action_noise: float = 0.0, frame_stack: int = 4, render: bool = False,
                     progress: bool = False) -> Recording:
     """Run ``episodes`` episodes of ``policy`` and keep the transitions of the chosen ones.
 
@@ -106,6 +109,10 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
             judged stable on the whole of it; the stored part ends without a terminal flag, so
             its last transition bootstraps. This puts the prior knowledge on the manoeuvre
             (waiting for a gap, changing, settling) instead of on long lane keeping.
+        action_noise: probability per step of executing a uniform random action instead of
+            the policy's (:class:`PerturbedPolicy`, seeded with ``seed``); those steps are not
+            stored, so the kept transitions show the policy recovering from the noise's
+            off-path states. 0: the policy alone.
         frame_stack: stacked frames per observation.
         render: build the env with ``render_mode='rgb_array'`` (for a policy that shows the
             scene, like the keyboard recorder).
@@ -113,7 +120,8 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
     """
     env = make_env(env_config_values(env_cfg), frame_stack=frame_stack,
                    render_mode="rgb_array" if render else None)
-    module = PolicyModule(policy, unwrap(env))
+    noisy = PerturbedPolicy(policy, action_noise, seed=seed) if action_noise > 0 else None
+    module = PolicyModule(noisy or policy, unwrap(env))
     duration = unwrap(env).cfg.duration
     rec = Recording()
     try:
@@ -127,18 +135,22 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
                 rec.stopped_early = True
                 break
             last = rollout[-1]["next"]
+            own = torch.ones(rollout.shape[0], dtype=torch.bool)  # steps of the policy's own action
+            if noisy is not None:
+                own = ~torch.tensor(noisy.perturbed[:rollout.shape[0]], dtype=torch.bool)
             stats = EpisodeStats(
                 seed=seed + i, steps=rollout.shape[0],
                 episode_return=float(rollout["next", "reward"].sum()),
                 collided=bool(last["collided"]), reached_target=bool(last["reached_target"]),
+                perturbed=int((~own).sum()),
             )
             rec.episodes.append(stats)
             if stats.stable or not keep_stable:
                 rec.kept.append(i)
                 reached = reached_index(rollout) if tail_steps is not None else None
                 if reached is not None and tail_steps is not None:
-                    rollout = rollout[:reached + 1 + tail_steps]
-                rec.transitions.append(to_transitions(rollout, is_demo=True))
+                    rollout, own = rollout[:reached + 1 + tail_steps], own[:reached + 1 + tail_steps]
+                rec.transitions.append(to_transitions(rollout[own], is_demo=True))
     finally:
         env.close()
         close = getattr(policy, "close", None)
@@ -185,23 +197,23 @@ def env_config_values(env_cfg: EnvCfg) -> dict[str, Any]:
 
 def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.PathLike, *,
                       episodes: int, seed: int = 0, keep_stable: bool = True,
-                      tail_steps: int | None = None, source: str,
+                      tail_steps: int | None = None, action_noise: float = 0.0, source: str,
                       frame_stack: int = 4, render: bool = False, progress: bool = False,
                       overwrite: bool = False, extra: Mapping[str, Any] | None = None,
                       ) -> tuple[Path | None, Recording]:
     """Record episodes and save the kept ones as a dataset (None when nothing was kept).
 
     Args:
-        env_cfg, policy, episodes, seed, keep_stable, tail_steps, frame_stack, render,
-            progress: as :func:`record_episodes`.
+        env_cfg, policy, episodes, seed, keep_stable, tail_steps, action_noise, frame_stack,
+            render, progress: as :func:`record_episodes`.
         path: dataset folder to write.
         source: who made the transitions (``scripted``, ``human``, ...), stored in the metadata.
         overwrite: replace an existing dataset at ``path``.
         extra: more metadata entries (e.g. the policy's config).
     """
     rec = record_episodes(env_cfg, policy, episodes=episodes, seed=seed, keep_stable=keep_stable,
-                          tail_steps=tail_steps, frame_stack=frame_stack, render=render,
-                          progress=progress)
+                          tail_steps=tail_steps, action_noise=action_noise,
+                          frame_stack=frame_stack, render=render, progress=progress)
     if not rec.transitions:
         log.warning("no episode kept out of %d recorded; nothing saved", len(rec.episodes))
         return None, rec
@@ -211,6 +223,7 @@ def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.Pat
         "seed": seed,
         "keep": "stable" if keep_stable else "all",
         "tail_steps": tail_steps,
+        "action_noise": action_noise,
         "env_config": env_config_values(env_cfg),
         "frame_stack": frame_stack,
         "counts": {"episodes": len(kept), "episodes_recorded": len(rec.episodes)},

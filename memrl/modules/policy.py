@@ -64,3 +64,37 @@ class PolicyModule(TensorDictModuleBase):
         action = self.policy.act(self.env, pixels)
         td.set("action", torch.tensor(action, dtype=torch.int64))
         return td
+
+
+class PerturbedPolicy(DrivingPolicy):
+    """Executes a uniform random action instead of ``policy``'s with probability ``noise`` per
+    step (DART-style noise injection); the wrapped driver still decides every step.
+
+    ``perturbed`` flags, per step since the last reset, whether the executed action differs
+    from the driver's. Recording keeps only the other steps, so the prior knowledge shows the driver's
+    own actions from the off-path states its noise led to (recoveries), never the noise.
+    """
+
+    def __init__(self, policy: DrivingPolicy, noise: float, seed: int = 0) -> None:
+        if not 0.0 <= noise < 1.0:
+            raise ValueError(f"action noise must be in [0, 1), got {noise!r}")
+        self.policy = policy
+        self.noise = noise
+        self.rng = np.random.default_rng(seed)
+        self.perturbed: list[bool] = []
+        self.needs_render = bool(getattr(policy, "needs_render", False))
+
+    def reset(self, env: LaneChangeEnv) -> None:
+        self.perturbed = []
+        self.policy.reset(env)
+
+    def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
+        action = self.policy.act(env, pixels)
+        executed = int(self.rng.integers(N_ACTIONS)) if self.rng.random() < self.noise else action
+        self.perturbed.append(executed != action)
+        return executed
+
+    def close(self) -> None:
+        close = getattr(self.policy, "close", None)
+        if callable(close):
+            close()
