@@ -63,6 +63,10 @@ def record(cfg: DictConfig) -> RecordSummary:
     started = datetime.now(UTC).replace(microsecond=0)
     stopped = False
     if cfg.example:
+        if tail is not None or noise:
+            raise ValueError("record 'example': the example dataset holds whole noiseless "
+                             "episodes; drop tail_steps and action_noise, or record without "
+                             "example=true")
         if cfg.demos.source != "scripted":
             raise ValueError("record 'example': the example dataset is made by the scripted driver "
                              f"(demos=scripted), not demos={cfg.demos.source}")

@@ -342,6 +342,9 @@ def test_record_example_and_bad_options(compose_cfg, tmp_path):
         record(compose_cfg("record", [*base, "keep=some"]))
     with pytest.raises(ValueError, match="example"):
         record(compose_cfg("record", [*base, "example=true", "demos=human"]))
+    for option in ("tail_steps=5", "action_noise=0.1"):
+        with pytest.raises(ValueError, match="example.*noiseless"):
+            record(compose_cfg("record", [*base, "example=true", option]))
 
 
 def test_dataset_recorded_before_a_later_key_still_loads(copy):

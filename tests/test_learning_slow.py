@@ -24,13 +24,15 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
         f"paths.data_dir={tmp_path / 'data'}",
     ])
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
-    # Manoeuvre-focused prior knowledge (README): 200 non-goal starts among 0-5 cars, each
-    # kept up to 30 steps after the target lane is reached, from the position-rule driver.
+    # Manoeuvre-focused prior knowledge (README): 240 non-goal starts among 0-5 cars, each
+    # kept up to 30 steps after the target lane is reached, from the position-rule driver,
+    # recorded with 20% random actions of which only the driver's recoveries are stored.
     record_cfg = {**env_cfg, "initial_lane": "non_goal", "vehicles_count": [0, 5]}
     driver = ScriptedDriver(merge_window=12.0, speed_tolerance=0.3)
     start = time.perf_counter()
-    path, _ = record_to_dataset(record_cfg, driver, tmp_path / "demos", episodes=200, seed=0,
-                                keep_stable=True, tail_steps=30, source="scripted")
+    path, _ = record_to_dataset(record_cfg, driver, tmp_path / "demos", episodes=240, seed=0,
+                                keep_stable=True, tail_steps=30, action_noise=0.2,
+                                source="scripted")
     record_s = time.perf_counter() - start
     demos = load_demos(path, env_cfg=cfg.env)
     trainer = Trainer(cfg, tmp_path / "run", demos)
