@@ -131,7 +131,7 @@ def test_unknown_precision_is_refused_naming_the_key(compose_cfg):
 def test_bench_stage1_reports_each_variant(compose_cfg, tmp_path):
     cfg = compose_cfg("bench", [
         "benchmarks=[stage1]", "stage1.updates=2", "stage1.check_every=1", "stage1.episodes=1",
-        f"stage1.data_dir={tmp_path / 'data'}",
+        "stage1.drive_every=1", f"stage1.data_dir={tmp_path / 'data'}",
         "stage1.variants=[{name:plain,overrides:['env.duration=40','agent.batch_size=8']},"
         "{name:cue,overrides:['env.duration=40','agent.batch_size=8','env.bev.path_length=20']},"
         "{name:own,overrides:['env.duration=40','agent.batch_size=8'],demos:{episodes:2,"
@@ -141,6 +141,10 @@ def test_bench_stage1_reports_each_variant(compose_cfg, tmp_path):
     for r in runs:
         assert len(r["agreements"]) == 2 and r["survived_non_goal"] in (0, 1)
         assert r["both_non_goal"] <= min(r["survived_non_goal"], r["reached_non_goal"])
+        # driven after update 1 and at the end; the last point is the run's own figures
+        assert [c["updates"] for c in r["curve"]] == [1, 2]
+        assert r["curve"][-1] == {"updates": 2, "survived": r["survived_non_goal"],
+                                  "reached": r["reached_non_goal"], "both": r["both_non_goal"]}
         assert set(r["last_check_parts"]) == {"speed", "curvature", "steering_recall",
                                               "steering_share"}
     # its own recording: 2 stable episodes, each cut 3 steps after reaching the target lane

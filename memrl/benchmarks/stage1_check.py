@@ -39,6 +39,25 @@ def _drive(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int,
     return survived, reached, both
 
 
+class _DriveCurve:
+    """Drives the greedy agent every ``every`` updates of a stage-1 run, before the last."""
+
+    def __init__(self, trainer: Any, env_cfg: dict[str, Any], episodes: int, every: int,
+                 last: int) -> None:
+        self.trainer, self.env_cfg, self.episodes = trainer, env_cfg, episodes
+        self.every, self.last = every, last
+        self.points: list[dict[str, int]] = []
+        self.seconds = 0.0
+        """Time spent driving [s]."""
+
+    def __call__(self, done: int) -> None:
+        if self.every > 0 and done % self.every == 0 and done < self.last:
+            start = time.perf_counter()
+            s, r, b = _drive(self.trainer.learner.qnet, self.env_cfg, self.episodes)
+            self.points.append({"updates": done, "survived": s, "reached": r, "both": b})
+            self.seconds += time.perf_counter() - start
+
+
 def record_variant_demos(env_cfg: dict[str, Any], recipe: dict[str, Any], folder: Path) -> Path:
     """Record a variant's own scripted demos: ``recipe`` holds ``episodes`` (default 100),
     ``seed`` (0), ``tail_steps`` (null), ``action_noise`` (0), ``driver`` (ScriptedDriver
@@ -65,10 +84,13 @@ DEFAULT_VARIANTS: list[dict[str, Any]] = [
 
 
 def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_every: int = 100,
-        episodes: int = 20, data_dir: str | None = None, threads: int = 1) -> dict[str, Any]:
+        episodes: int = 20, data_dir: str | None = None, threads: int = 1,
+        drive_every: int = 0) -> dict[str, Any]:
     """One stage-1 training per variant (train overrides, e.g. ``env.bev.path_length=20``),
     same seed; each trains on the cached scripted example demos of its own env config, or,
-    when the variant has a ``demos`` recipe, on demos recorded for it."""
+    when the variant has a ``demos`` recipe, on demos recorded for it. ``drive_every`` > 0
+    also drives the greedy agent every that many updates (a ``curve`` per run; its driving
+    time is left out of updates/s)."""
     from memrl.configs import register_configs
     from memrl.data.demos import ensure_example_demos, load_demos
     from memrl.dqn.loop import Trainer
@@ -92,10 +114,13 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
             demos = load_demos(source, env_cfg=env_cfg).to_tensordict()
             trainer = Trainer(cfg, Path(tmp) / "run", demos)
             trainer._t_start, trainer._frames0, trainer._updates0 = time.perf_counter(), 0, 0
+            curve = _DriveCurve(trainer, env_cfg, episodes, drive_every, updates)
             start = time.perf_counter()
-            trainer.run_stage1()
-            wall = time.perf_counter() - start
+            trainer.run_stage1(curve)
+            wall = time.perf_counter() - start - curve.seconds
             survived, reached, both = _drive(trainer.learner.qnet, env_cfg, episodes)
+            curve.points.append({"updates": updates, "survived": survived, "reached": reached,
+                                 "both": both})
         out["runs"].append({"variant": name, "overrides": list(overrides),
                             "margin_weight": float(cfg.mode.stage1.margin_weight),
                             "demos": len(demos), "demo_recipe": recipe or "example",
@@ -104,5 +129,5 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
                                                  trainer.stage1.parts[-1].items()},
                             "updates_per_s": round(updates / wall, 2), "wall_s": round(wall, 1),
                             "survived_non_goal": survived, "reached_non_goal": reached,
-                            "both_non_goal": both})
+                            "both_non_goal": both, "curve": curve.points})
     return out

@@ -15,6 +15,7 @@ import json
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -244,13 +245,19 @@ class Trainer:
         c.update_rows += 1
         self._acc = {"loss": [], "demo": []}
 
-    def run_stage1(self) -> None:
-        """Mode B stage 1 on the demo-only buffer, then the switch to stage 2."""
+    def run_stage1(self, after_update: Callable[[int], None] | None = None) -> None:
+        """Mode B stage 1 on the demo-only buffer, then the switch to stage 2.
+
+        ``after_update(updates)``, when given, is called after each update, before the check
+        and the switch (the stage-1 bench drives the greedy agent from it every N updates).
+        """
         s1, cfg = self.stage1, self.cfg.mode.stage1
         assert self.held_out is not None
         while not s1.done:
             self._learn()
             s1.updates += 1
+            if after_update is not None:
+                after_update(s1.updates)
             if s1.updates % int(cfg.check_every) == 0 or s1.updates >= int(cfg.max_updates):
                 s1.losses.append(float(np.mean(list(self._losses)[-int(cfg.check_every):])))
                 s1.agreements.append(agreement(self.learner.qnet, self.held_out))
