@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
-from memrl.checkpoint import GreedyQPolicy
+from memrl.benchmarks.stage1_check import CONF_DIR, drive_greedy, record_variant_demos
 from memrl.data.demos import load_demos
-from memrl.data.recording import record_to_dataset
 from memrl.dqn.loop import Trainer
-from memrl.envs.torchrl_env import make_env, unwrap
-from memrl.modules.policy import PolicyModule
-from memrl.modules.scripted import ScriptedDriver
 
 
 @pytest.mark.slow
@@ -24,15 +21,14 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
         f"paths.data_dir={tmp_path / 'data'}",
     ])
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
-    # Manoeuvre-focused prior knowledge (README): 240 non-goal starts among 0-5 cars, each
-    # kept up to 30 steps after the target lane is reached, from the position-rule driver,
-    # recorded with 20% random actions of which only the driver's recoveries are stored.
-    record_cfg = {**env_cfg, "initial_lane": "non_goal", "vehicles_count": [0, 5]}
-    driver = ScriptedDriver(merge_window=12.0, speed_tolerance=0.3)
+    # Manoeuvre-focused prior knowledge, the `imitation` recipe of conf/bench.yaml (README):
+    # 240 non-goal starts among 0-5 cars, each kept up to 30 steps after the target lane is
+    # reached, from the position-rule driver, recorded with 20% random actions of which only
+    # the driver's recoveries are stored.
+    bench_cfg = OmegaConf.load(Path(CONF_DIR) / "bench.yaml")
+    recipe = next(v for v in bench_cfg.stage1.variants if v.name == "imitation").demos
     start = time.perf_counter()
-    path, _ = record_to_dataset(record_cfg, driver, tmp_path / "demos", episodes=240, seed=0,
-                                keep_stable=True, tail_steps=30, action_noise=0.2,
-                                source="scripted")
+    path = record_variant_demos(env_cfg, OmegaConf.to_container(recipe), tmp_path / "demos")
     record_s = time.perf_counter() - start
     demos = load_demos(path, env_cfg=cfg.env)
     trainer = Trainer(cfg, tmp_path / "run", demos)
@@ -40,15 +36,7 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
     start = time.perf_counter()
     trainer.run_stage1()
     wall = time.perf_counter() - start
-    policy = GreedyQPolicy(trainer.learner.qnet)
-    env = make_env({**env_cfg, "vehicles_count": [0, 5], "initial_lane": "non_goal"}, seed=0)
-    module = PolicyModule(policy, unwrap(env))
-    survived = reached = both = 0
-    for episode in range(20):
-        td = env.reset(seed=10_000 + episode)
-        out = env.rollout(300, module, tensordict=td, auto_reset=False, break_when_any_done=True)
-        ok, goal = not bool(out["next", "collided"].any()), bool(out["next", "reached_target"].any())
-        survived, reached, both = survived + ok, reached + goal, both + (ok and goal)
+    survived, reached, both = drive_greedy(trainer.learner.qnet, env_cfg, 20)
     report = {"demos": len(demos), "record_s": round(record_s, 1),
               "stage1_updates": trainer.stage1.updates, "stop": trainer.stage1.stop_reason,
               "agreements": [round(a, 3) for a in trainer.stage1.agreements],

@@ -22,7 +22,9 @@ from omegaconf import OmegaConf
 CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
 
 
-def _drive(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int, int]:
+def drive_greedy(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int, int]:
+    """(survived, reached, both in the same episode) of the greedy agent over ``episodes``
+    non-goal episodes with 0-5 cars, reset with seeds 10,000, 10,001, ..."""
     from memrl.checkpoint import GreedyQPolicy
     from memrl.envs.torchrl_env import make_env, unwrap
     from memrl.modules.policy import PolicyModule
@@ -53,7 +55,7 @@ class _DriveCurve:
     def __call__(self, done: int) -> None:
         if self.every > 0 and done % self.every == 0 and done < self.last:
             start = time.perf_counter()
-            s, r, b = _drive(self.trainer.learner.qnet, self.env_cfg, self.episodes)
+            s, r, b = drive_greedy(self.trainer.learner.qnet, self.env_cfg, self.episodes)
             self.points.append({"updates": done, "survived": s, "reached": r, "both": b})
             self.seconds += time.perf_counter() - start
 
@@ -118,7 +120,7 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
             start = time.perf_counter()
             trainer.run_stage1(curve)
             wall = time.perf_counter() - start - curve.seconds
-            survived, reached, both = _drive(trainer.learner.qnet, env_cfg, episodes)
+            survived, reached, both = drive_greedy(trainer.learner.qnet, env_cfg, episodes)
             curve.points.append({"updates": updates, "survived": survived, "reached": reached,
                                  "both": both})
         out["runs"].append({"variant": name, "overrides": list(overrides),

@@ -48,8 +48,7 @@ EPISODE_KEYS = (
 )
 """Env-config keys left out of :func:`env_config_hash`: they choose which episodes are drawn
 (start and target lanes, the agent's starting pose, how many other cars, where, how fast and
-who drives them) or only
-the picture for people, not what a transition means. Demonstrations recorded with
+who drives them) or only the picture for people, not what a transition means. Demonstrations recorded with
 ``initial_lane=non_goal`` therefore load into a run with ``initial_lane=random``; the full
 config is still stored in the metadata."""
 

@@ -135,22 +135,21 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
                 rec.stopped_early = True
                 break
             last = rollout[-1]["next"]
-            own = torch.ones(rollout.shape[0], dtype=torch.bool)  # steps of the policy's own action
-            if noisy is not None:
-                own = ~torch.tensor(noisy.perturbed[:rollout.shape[0]], dtype=torch.bool)
+            perturbed = torch.tensor(noisy.perturbed if noisy else [], dtype=torch.bool)
             stats = EpisodeStats(
                 seed=seed + i, steps=rollout.shape[0],
                 episode_return=float(rollout["next", "reward"].sum()),
                 collided=bool(last["collided"]), reached_target=bool(last["reached_target"]),
-                perturbed=int((~own).sum()),
+                perturbed=int(perturbed.sum()),
             )
             rec.episodes.append(stats)
             if stats.stable or not keep_stable:
                 rec.kept.append(i)
-                reached = reached_index(rollout) if tail_steps is not None else None
-                if reached is not None and tail_steps is not None:
-                    rollout, own = rollout[:reached + 1 + tail_steps], own[:reached + 1 + tail_steps]
-                rec.transitions.append(to_transitions(rollout[own], is_demo=True))
+                if tail_steps is not None and (reached := reached_index(rollout)) is not None:
+                    rollout = rollout[:reached + 1 + tail_steps]
+                if noisy is not None:  # store only the steps of the policy's own action
+                    rollout = rollout[~perturbed[:rollout.shape[0]]]
+                rec.transitions.append(to_transitions(rollout, is_demo=True))
     finally:
         env.close()
         close = getattr(policy, "close", None)

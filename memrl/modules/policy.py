@@ -71,8 +71,9 @@ class PerturbedPolicy(DrivingPolicy):
     step (DART-style noise injection); the wrapped driver still decides every step.
 
     ``perturbed`` flags, per step since the last reset, whether the executed action differs
-    from the driver's. Recording keeps only the other steps, so the prior knowledge shows the driver's
-    own actions from the off-path states its noise led to (recoveries), never the noise.
+    from the driver's. Recording keeps only the other steps, so the prior knowledge shows the
+    driver's own actions from the off-path states its noise led to (recoveries), never the
+    noise.
     """
 
     def __init__(self, policy: DrivingPolicy, noise: float, seed: int = 0) -> None:
