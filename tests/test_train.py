@@ -242,3 +242,106 @@ def test_stage1_agreement_parts_split_speed_and_curvature():
     assert agreement(Always3(), held) == 0.25
     assert agreement_parts(Always3(), held, chunk=3) == {
         "speed": 0.75, "curvature": 0.25, "steering_recall": 0.5, "steering_share": 1.0}
+
+
+class ScriptedDrives:
+    """Stands in for ``drive_check``: returns the given ``both`` counts in turn and keeps a
+    copy of the weights it was shown."""
+
+    def __init__(self, both):
+        self.both, self.seen = list(both), []
+
+    def __call__(self, qnet, env_cfg, episodes, seed=0):
+        self.seen.append({k: v.clone() for k, v in qnet.state_dict().items()})
+        both = self.both.pop(0)
+        return {"survived": both, "reached": both, "both": both}
+
+
+def _stage1(compose_cfg, tmp_path, demos, monkeypatch, drives, extra):
+    import memrl.dqn.loop as loop
+
+    monkeypatch.setattr(loop, "drive_check", drives)
+    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.drive_episodes=4", *extra])
+    trainer = Trainer(cfg, tmp_path, demos)
+    trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
+    return trainer
+
+
+def test_stage1_keeps_the_weights_that_drove_best(compose_cfg, tmp_path, demos, monkeypatch):
+    drives = ScriptedDrives([1, 3, 2])  # checks at 4, 8, 12 updates
+    trainer = _stage1(compose_cfg, tmp_path, demos, monkeypatch, drives,
+                      ["mode.stage1.criterion=max_updates", "mode.stage1.lr=0.003"])
+    trainer.run_stage1()
+    s1 = trainer.stage1
+    assert [d["updates"] for d in s1.drives] == [4, 8, 12] and s1.best_updates == 8
+    assert "weights of update 8" in s1.stop_reason
+    best, last = drives.seen[1], drives.seen[2]
+    assert any(not torch.equal(best[k], last[k]) for k in best)  # training went on after 8
+    saved = torch.load(tmp_path / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
+    now = trainer.learner.qnet.state_dict()
+    for k, v in best.items():  # stage 2 and stage1.pt hold update 8's weights
+        assert torch.equal(now[k], v)
+    online = [k for k in saved if k.startswith("value_network_params")]
+    assert online and all(torch.equal(saved[k], trainer.learner.loss_module.state_dict()[k])
+                          for k in online)
+
+
+def test_stage1_behaviour_criterion_stops_when_the_drives_reach_the_target(
+        compose_cfg, tmp_path, demos, monkeypatch):
+    drives = ScriptedDrives([1, 2, 4])
+    trainer = _stage1(compose_cfg, tmp_path, demos, monkeypatch, drives,
+                      ["mode.stage1.criterion=behaviour", "mode.stage1.drive_target=0.5",
+                       "mode.stage1.max_updates=100"])
+    trainer.run_stage1()
+    # 2 of 4 >= 0.5 at the second check; the last weights are the best: no swap
+    assert trainer.stage1.updates == 8 and trainer.stage1.stop_reason.startswith("behaviour")
+    assert "weights of update" not in trainer.stage1.stop_reason
+    assert trainer.counters.stage == "B2" and drives.both == [4]
+
+
+def test_stage1_behaviour_criterion_needs_drive_episodes(compose_cfg, tmp_path):
+    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=behaviour"])
+    with pytest.raises(TrainConfigError, match=r"mode\.stage1\.drive_episodes"):
+        train(cfg, tmp_path)
+
+
+def test_stage1_resumed_mid_way_keeps_its_best_weights(compose_cfg, tmp_path, demos, monkeypatch):
+    extra = ["mode.stage1.criterion=max_updates", "mode.stage1.lr=0.003"]
+    full = _stage1(compose_cfg, tmp_path / "full", demos, monkeypatch, ScriptedDrives([3, 1, 2]),
+                   extra)
+    full.run_stage1()
+    cut = _stage1(compose_cfg, tmp_path / "cut", demos, monkeypatch, ScriptedDrives([3, 1]), extra)
+
+    def die(updates):
+        if updates == 10:
+            raise Killed("simulated kill")
+
+    with pytest.raises(Killed):
+        cut.run_stage1(die)  # last checkpoint at 8 updates; best so far: update 4
+    resumed = _stage1(compose_cfg, tmp_path / "cut", demos, monkeypatch, ScriptedDrives([2]), extra)
+    resumed.resume(tmp_path / "cut")
+    assert resumed.stage1.updates == 8 and resumed.stage1.best_updates == 4
+    resumed.run_stage1()
+    assert resumed.stage1.best_updates == full.stage1.best_updates == 4
+    assert resumed.stage1.drives == full.stage1.drives
+    a, b = full.learner.loss_module.state_dict(), resumed.learner.loss_module.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_drive_check_counts_the_behaviour_in_its_own_scenes(compose_cfg):
+    from memrl.dqn.stage1 import drive_check
+    from memrl.envs.vehicles import IDLE, N_ACTIONS
+    from memrl.evaluation.protocol import scenario_seeds
+
+    class KeepLane(torch.nn.Module):  # argmax Q = keep speed and curvature, always
+        def forward(self, x):
+            q = torch.zeros(len(x), N_ACTIONS)
+            q[:, IDLE] = 1.0
+            return q
+
+    cfg = compose_cfg("train", TINY)
+    counts = drive_check(KeepLane(), cfg.env, 6, seed=0)
+    # a non-goal start and no steering: the target lane is never reached
+    assert counts["reached"] == counts["both"] == 0 and 0 <= counts["survived"] <= 6
+    assert counts == drive_check(KeepLane(), cfg.env, 6, seed=0)
+    assert not set(scenario_seeds(0, 20, "stage1")) & set(scenario_seeds(0, 100, "test"))

@@ -119,7 +119,7 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
             curve = _DriveCurve(trainer, env_cfg, episodes, drive_every, updates)
             start = time.perf_counter()
             trainer.run_stage1(curve)
-            wall = time.perf_counter() - start - curve.seconds
+            wall = time.perf_counter() - start - curve.seconds - trainer.stage1.drive_s
             survived, reached, both = drive_greedy(trainer.learner.qnet, env_cfg, episodes)
             curve.points.append({"updates": updates, "survived": survived, "reached": reached,
                                  "both": both})
@@ -129,6 +129,10 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
                             "agreements": [round(a, 3) for a in trainer.stage1.agreements],
                             "last_check_parts": {k: round(v, 3) for k, v in
                                                  trainer.stage1.parts[-1].items()},
+                            "stop": trainer.stage1.stop_reason,
+                            "drives": trainer.stage1.drives,
+                            "best_updates": trainer.stage1.best_updates,
+                            "drive_s": round(trainer.stage1.drive_s, 1),
                             "updates_per_s": round(updates / wall, 2), "wall_s": round(wall, 1),
                             "survived_non_goal": survived, "reached_non_goal": reached,
                             "both_non_goal": both, "curve": curve.points})

@@ -20,7 +20,8 @@ LEGACY_VALUES: dict[str, Any] = {
     "agent": {"precision": "float32", "overlap": False},
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
             "initial_curvature": 0.0},
-    "mode": {"stage1": {"lr": None}},
+    "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
+                        "keep_best": True}},
 }
 """Keys added to the config after checkpoints were first written, at the value that does what
 the versions before them did: a checkpoint without a key is compared as if it held this

@@ -96,7 +96,19 @@ class Stage1Config:
     plateau_tol: float = 0.02
     """Relative loss improvement under which the loss counts as flat."""
     criterion: str = "agreement_or_plateau"
-    """agreement | plateau | agreement_or_plateau | max_updates."""
+    """agreement | plateau | agreement_or_plateau | behaviour | max_updates. ``behaviour``:
+    stop when ``drive_target`` of the drive episodes survive and reach the target lane."""
+    drive_episodes: int = 0
+    """Greedy non-goal episodes driven at every check (0: none): the behaviour itself, in
+    scenes of their own seed domain (not the test scenes). Needed by ``behaviour``."""
+    drive_seed: int = 0
+    """Base of the drive episodes' scene seeds."""
+    drive_target: float = 0.9
+    """``behaviour``: share of drive episodes that must both survive and reach the target."""
+    keep_best: bool = True
+    """With drive episodes: stage 2 (and ``stage1.pt``) start from the checked weights that
+    drove best (most episodes surviving and reaching; ties: the later), not the last ones.
+    Imitation from few demos swings from check to check (README, "Stage 1 on its own")."""
     margin_weight: float = 1.0
     """Weight of DQfD's large-margin loss on the demos in stage 1 (0: eq. (1) alone, the
     paper's literal reading; with it alone the greedy agent drifts away from the demo actions,
@@ -165,8 +177,12 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(m.sampling in ("stratified", "proportional"), "mode.sampling",
           f"expected stratified or proportional, got {m.sampling!r}")
     s1 = m.stage1
-    _need(s1.criterion in ("agreement", "plateau", "agreement_or_plateau", "max_updates"),
+    _need(s1.criterion in ("agreement", "plateau", "agreement_or_plateau", "behaviour", "max_updates"),
           "mode.stage1.criterion", f"unknown criterion {s1.criterion!r}")
+    _need(s1.drive_episodes >= 0, "mode.stage1.drive_episodes", "must be >= 0")
+    _need(s1.criterion != "behaviour" or s1.drive_episodes >= 1, "mode.stage1.drive_episodes",
+          "criterion 'behaviour' needs drive episodes (>= 1)")
+    _need(0 < s1.drive_target <= 1, "mode.stage1.drive_target", "must be in (0, 1]")
     _need(0 < s1.holdout_fraction < 1, "mode.stage1.holdout_fraction", "must be in (0, 1)")
     _need(s1.max_updates >= 1 and s1.check_every >= 1, "mode.stage1.max_updates", "must be >= 1")
     _need(s1.lr is None or s1.lr > 0, "mode.stage1.lr", f"must be > 0 or null, got {s1.lr}")

@@ -39,6 +39,7 @@ from memrl.dqn.stage1 import (
     Stage1Progress,
     agreement,
     agreement_parts,
+    drive_check,
     split_demos,
     stop_reason,
 )
@@ -118,6 +119,8 @@ class Trainer:
         self.learner = Learner(cfg.agent)
         self.counters = Counters(stage={"default": "default", "A": "A", "B": "B1"}[self.mode])
         self.stage1 = Stage1Progress()
+        self._stage1_best: dict[str, torch.Tensor] | None = None
+        """Stage 1 with drive episodes: the loss module's weights that drove best so far."""
         self.demos = demos
         if self.mode in ("A", "B") and demos is None:
             raise ValueError(f"mode {self.mode} needs prior knowledge (demos)")
@@ -179,6 +182,7 @@ class Trainer:
             "acc": self._acc,
             "recent": list(self._recent),
             "rng": ckpt.rng_state(),
+            "stage1_best": self._stage1_best,
         }
 
     def save_checkpoint(self) -> None:
@@ -192,6 +196,7 @@ class Trainer:
         state = ckpt.load_state(where, self.cfg)
         self.counters = Counters(**state["counters"])
         self.stage1 = Stage1Progress(**state["stage1"])
+        self._stage1_best = state.get("stage1_best")
         self.learner.load_state_dict(state["learner"])
         self._build_stage()
         self.explore.load_state_dict(state["explore"])
@@ -262,6 +267,8 @@ class Trainer:
                 s1.losses.append(float(np.mean(list(self._losses)[-int(cfg.check_every):])))
                 s1.agreements.append(agreement(self.learner.qnet, self.held_out))
                 s1.parts.append(agreement_parts(self.learner.qnet, self.held_out))
+                if int(cfg.drive_episodes) > 0:
+                    self._drive_stage1()
                 s1.stop_reason = stop_reason(cfg, s1)
                 log.info("stage 1: %d updates, loss %.4f, agreement %.3f (%s)%s", s1.updates,
                          s1.losses[-1], s1.agreements[-1],
@@ -272,8 +279,29 @@ class Trainer:
                     self._finish_stage1()
                 self.save_checkpoint()
 
+    def _drive_stage1(self) -> None:
+        """Stage 1's behaviour check: drive the greedy agent; remember the best weights."""
+        s1, cfg = self.stage1, self.cfg.mode.stage1
+        start = time.perf_counter()
+        counts = drive_check(self.learner.qnet, self.cfg.env, int(cfg.drive_episodes),
+                             int(cfg.drive_seed))
+        s1.drive_s += time.perf_counter() - start
+        s1.drives.append({"updates": s1.updates, **counts})
+        best = next((d["both"] for d in s1.drives if d["updates"] == s1.best_updates), -1)
+        if bool(cfg.keep_best) and counts["both"] >= best:
+            s1.best_updates = s1.updates
+            self._stage1_best = {k: v.detach().clone()
+                                 for k, v in self.learner.loss_module.state_dict().items()}
+        log.info("stage 1: %d updates, drive: %d/%d survived, %d reached, %d both (best at %d)",
+                 s1.updates, counts["survived"], int(cfg.drive_episodes), counts["reached"],
+                 counts["both"], s1.best_updates)
+
     def _finish_stage1(self) -> None:
         self.stage1.done = True
+        if self._stage1_best is not None and self.stage1.best_updates != self.stage1.updates:
+            self.learner.loss_module.load_state_dict(self._stage1_best)
+            self.stage1.stop_reason += f"; weights of update {self.stage1.best_updates} (drove best)"
+        self._stage1_best = None
         path = self.out_dir / "checkpoints" / "stage1.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         torch.save({"loss_module": self.learner.loss_module.state_dict(),

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 
 from memrl.dqn.config import Stage1Config
+from memrl.evaluation.policies import GreedyActor
+from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
+from memrl.evaluation.runner import Job, run_jobs
 
 
 @dataclass
@@ -21,6 +25,12 @@ class Stage1Progress:
     """Greedy/demo action agreement on held-out demos at each check."""
     parts: list[dict[str, float]] = field(default_factory=list)
     """At each check, :func:`agreement_parts` of the held-out demos."""
+    drives: list[dict[str, int]] = field(default_factory=list)
+    """At each check with ``drive_episodes``: :func:`drive_check` counts and ``updates``."""
+    best_updates: int = 0
+    """Updates of the checked weights that drove best so far (0: none yet)."""
+    drive_s: float = 0.0
+    """Wall time spent in those drives [s]."""
     stop_reason: str = ""
     done: bool = False
 
@@ -68,6 +78,25 @@ def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
     }
 
 
+def drive_check(qnet: torch.nn.Module, env_cfg: Any, episodes: int, seed: int = 0,
+                batch: int = 10) -> dict[str, int]:
+    """The behaviour itself: the greedy agent drives ``episodes`` non-goal episodes among 0-5
+    constant-speed cars (the protocol's rules on the run's env); returns the counts of
+    ``survived``, ``reached`` (the target lane) and ``both`` in the same episode.
+
+    Its scenes come from their own seed domain (``stage1``), apart from the training,
+    periodic and Table III scenes, so choosing weights by it does not tune on the test scenes.
+    """
+    duration = int(env_cfg.get("duration", 300))  # the run's episode length
+    protocol = ProtocolConfig(episodes=episodes, seed=seed, initial_lanes=["non_goal"],
+                              duration=duration)
+    seeds = list(enumerate(scenario_seeds(seed, episodes, domain="stage1")))
+    job = Job(protocol_env(env_cfg, protocol, "non_goal"), "non_goal", seeds)
+    records = run_jobs(GreedyActor(qnet), [job], batch=batch).records  # type: ignore[arg-type]
+    return {"survived": sum(r.survived for r in records), "reached": sum(r.goal for r in records),
+            "both": sum(r.survived and r.goal for r in records)}
+
+
 def stop_reason(cfg: Stage1Config, progress: Stage1Progress) -> str:
     """Why stage 1 should stop now ('' to go on), per ``cfg.criterion``."""
     if progress.updates >= cfg.max_updates:
@@ -84,4 +113,8 @@ def stop_reason(cfg: Stage1Config, progress: Stage1Progress) -> str:
         return f"agreement {progress.agreements[-1]:.3f} >= {cfg.agreement}"
     if flat and cfg.criterion in ("plateau", "agreement_or_plateau"):
         return f"loss plateau over {k} checks (< {cfg.plateau_tol:.0%} better)"
+    if cfg.criterion == "behaviour" and progress.drives:
+        both, n = progress.drives[-1]["both"], cfg.drive_episodes
+        if both >= cfg.drive_target * n:
+            return f"behaviour: {both}/{n} drive episodes survived and reached >= {cfg.drive_target}"
     return ""

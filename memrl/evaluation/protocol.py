@@ -24,9 +24,10 @@ from omegaconf import DictConfig, OmegaConf
 INITIAL_LANES = ("random", "non_goal")
 """The initial-lane settings of Table III."""
 
-DOMAINS = {"test": 0x7E57, "periodic": 0x9E71}
-"""Seed domains: the final protocol's scenes and the (different) scenes of periodic
-evaluation during training; both differ from the training episodes' seeds."""
+DOMAINS = {"test": 0x7E57, "periodic": 0x9E71, "stage1": 0x5171}
+"""Seed domains: the final protocol's scenes, the (different) scenes of periodic evaluation
+during training and those of mode B's stage-1 behaviour checks; all differ from the training
+episodes' seeds."""
 
 
 @dataclass
