@@ -15,20 +15,26 @@ from memrl.dqn.loop import Trainer
 
 
 @pytest.mark.slow
-def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
+@pytest.mark.parametrize("seed", [0, 1, 2, 3], ids=lambda s: f"seed{s}")
+def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path, seed):
+    """One seed of the check (``-k seed0``: the test's own); the four of them show whether
+    the recipe holds beyond the seed it was tuned on. Up to ~35 min each on 2 cores."""
     cfg = compose_cfg("train", [
         "+mode=B", "+experiment=imitation", "progress=false", "logger=none",
-        f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.data_dir={tmp_path / 'data'}", f"seed={seed}",
     ])
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     # Manoeuvre-focused prior knowledge, the `imitation` recipe of conf/bench.yaml (README):
     # 240 non-goal starts among 0-5 cars, each kept up to 30 steps after the target lane is
     # reached, from the position-rule driver, recorded with 20% random actions of which only
-    # the driver's recoveries are stored.
+    # the driver's recoveries are stored. Stage 1 drives 40 episodes of its own scenes every
+    # 1,000 updates, stops at 75% of them or 20,000 updates and keeps the weights that drove
+    # best; the 20 episodes below are other scenes (seeds 10,000+).
     bench_cfg = OmegaConf.load(Path(CONF_DIR) / "bench.yaml")
     recipe = next(v for v in bench_cfg.stage1.variants if v.name == "imitation").demos
+    recipe = {**OmegaConf.to_container(recipe), "seed": 5000 * seed}  # its own demo episodes
     start = time.perf_counter()
-    path = record_variant_demos(env_cfg, OmegaConf.to_container(recipe), tmp_path / "demos")
+    path = record_variant_demos(env_cfg, recipe, tmp_path / "demos")
     record_s = time.perf_counter() - start
     demos = load_demos(path, env_cfg=cfg.env)
     trainer = Trainer(cfg, tmp_path / "run", demos)
@@ -37,7 +43,7 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path):
     trainer.run_stage1()
     wall = time.perf_counter() - start
     survived, reached, both = drive_greedy(trainer.learner.qnet, env_cfg, 20)
-    report = {"demos": len(demos), "record_s": round(record_s, 1),
+    report = {"seed": seed, "demo_seed": 5000 * seed, "demos": len(demos), "record_s": round(record_s, 1),
               "stage1_updates": trainer.stage1.updates, "stop": trainer.stage1.stop_reason,
               "agreements": [round(a, 3) for a in trainer.stage1.agreements],
               "last_check_parts": trainer.stage1.parts[-1],
