@@ -25,20 +25,10 @@ CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
 def drive_greedy(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int, int]:
     """(survived, reached, both in the same episode) of the greedy agent over ``episodes``
     non-goal episodes with 0-5 cars, reset with seeds 10,000, 10,001, ..."""
-    from memrl.checkpoint import GreedyQPolicy
-    from memrl.envs.torchrl_env import make_env, unwrap
-    from memrl.modules.policy import PolicyModule
+    from memrl.dqn.stage1 import drive_counts
 
-    env = make_env({**env_cfg, "vehicles_count": [0, 5], "initial_lane": "non_goal"}, seed=0)
-    module = PolicyModule(GreedyQPolicy(qnet), unwrap(env))
-    survived = reached = both = 0
-    for episode in range(episodes):
-        td = env.reset(seed=10_000 + episode)
-        out = env.rollout(int(env_cfg.get("duration", 300)), module, tensordict=td,
-                          auto_reset=False, break_when_any_done=True)
-        ok, goal = not bool(out["next", "collided"].any()), bool(out["next", "reached_target"].any())
-        survived, reached, both = survived + ok, reached + goal, both + (ok and goal)
-    return survived, reached, both
+    counts = drive_counts(qnet, env_cfg, [10_000 + i for i in range(episodes)])
+    return counts["survived"], counts["reached"], counts["both"]
 
 
 class _DriveCurve:
