@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from memrl.envs.config import OpponentConfig
+from memrl.envs.scene import controller_mix
 from memrl.envs.vehicles import IDLE, CurvatureVehicle
 
 if TYPE_CHECKING:
@@ -45,27 +46,31 @@ class ConstantSpeedController(CarController):
 
 @dataclass
 class Opponents:
-    """The controllers of an episode's other cars and the chance of each car to get each."""
+    """The controllers of the other cars, one per kind (``constant``, ``learned``), in the
+    order of :func:`memrl.envs.scene.controller_mix`; which car gets which is drawn by the
+    scene sampler."""
 
     controllers: list[CarController]
-    weights: list[float]
 
-    def assign(self, rng: np.random.Generator, n: int) -> list[CarController]:
-        """A controller for each of ``n`` cars (drawn with the env's generator)."""
-        if len(self.controllers) == 1:
-            return [self.controllers[0]] * n
-        picks = rng.choice(len(self.controllers), size=n, p=self.weights)
-        return [self.controllers[i] for i in picks]
+    def of_kind(self, kind: str) -> CarController:
+        return next(c for c in self.controllers if c.kind == kind)
+
+    @property
+    def pool_size(self) -> int:
+        """Networks a learned car can draw from (1 when there are no learned cars)."""
+        learned = [c for c in self.controllers if c.kind == "learned"]
+        return len(learned[0].networks) if learned else 1  # type: ignore[attr-defined]
 
 
 def make_opponents(cfg: OpponentConfig) -> Opponents:
     """Controllers for ``constant``, ``learned`` or ``mixed`` traffic (loads the pool once)."""
-    if cfg.type == "constant":
-        return Opponents([ConstantSpeedController()], [1.0])
-    from memrl.modules.opponents import LearnedCarController  # torch networks: load lazily
+    kinds, _ = controller_mix(cfg)
+    controllers: list[CarController] = []
+    for kind in kinds:
+        if kind == "constant":
+            controllers.append(ConstantSpeedController())
+        else:
+            from memrl.modules.opponents import LearnedCarController  # torch networks: load lazily
 
-    learned = LearnedCarController(cfg.pool, epsilon=cfg.epsilon)
-    if cfg.type == "learned":
-        return Opponents([learned], [1.0])
-    p = float(cfg.learned_fraction)
-    return Opponents([ConstantSpeedController(), learned], [1.0 - p, p])
+            controllers.append(LearnedCarController(cfg.pool, epsilon=cfg.epsilon))
+    return Opponents(controllers)

@@ -19,6 +19,7 @@ from highway_env.road.road import Road, RoadNetwork
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import CarController, Opponents, make_opponents
 from memrl.envs.render import BEVRenderer, View
+from memrl.envs.scene import sample_scene
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
 
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
@@ -118,35 +119,24 @@ class LaneChangeEnv(AbstractEnv):
 
     # ----------------------------------------------------------------------------- scene
     def _reset(self) -> None:
-        cfg, rng = self.cfg, self.np_random
+        cfg = self.cfg
         self._components = None
         self.config["simulation_frequency"] = self.config["policy_frequency"] = 1.0 / cfg.dt
         self._make_road()
-        n = cfg.lanes_count
-        self.target_lane = int(rng.integers(n)) if cfg.target_lane == "random" else cfg.target_lane
-        others = [lane for lane in range(n) if lane != self.target_lane]
-        start_on_target = cfg.initial_lane == "random" and rng.random() < 0.5
-        lane = self.target_lane if start_on_target else int(rng.choice(others))
-        speed = float(rng.uniform(*cfg.initial_speed))
-        agent = self._car(np.array([500.0, lane * cfg.lane_width]), speed, "agent")
-        # Drawn only when enabled, so the episodes of a seed stay the same without them.
-        if cfg.initial_offset > 0:
-            agent.position[1] += float(rng.uniform(-cfg.initial_offset, cfg.initial_offset))
-        if cfg.initial_heading > 0:
-            agent.heading = float(rng.uniform(-cfg.initial_heading, cfg.initial_heading))
-        if cfg.initial_curvature > 0:
-            agent.curvature = float(rng.uniform(-cfg.initial_curvature, cfg.initial_curvature))
-        agent.target_lane = self.target_lane
-        self.vehicle = agent
-        self.road.vehicles.append(agent)
-        self.others = self._spawn_others(agent)
-        self.road.vehicles.extend(self.others)
         if self._opponents is None:  # built once per env: a learned pool is loaded once
             self._opponents = make_opponents(cfg.opponent)
+        scene = sample_scene(cfg, self.np_random, self._opponents.pool_size)
+        self.target_lane = scene.target_lane
+        agent = self._car_from(scene.agent, "agent")
+        agent.target_lane = self.target_lane
+        self.vehicle = agent
+        self.others = [self._car_from(row, "constant") for row in scene.others]
+        self.road.vehicles = [agent, *self.others]
         self.controllers = list(self._opponents.controllers)
-        for car, controller in zip(self.others, self._opponents.assign(rng, len(self.others)),
-                                   strict=True):
-            car.controller, car.kind = controller, controller.kind
+        for i, car in enumerate(self.others):
+            car.controller = self._opponents.of_kind("learned" if scene.learned[i] else "constant")
+            car.kind = car.controller.kind
+            car.target_lane, car.policy_index = int(scene.car_target[i]), int(scene.policy[i])
         for controller in self.controllers:
             controller.reset(self, self._cars_of(controller))
         self.reached_target = self._inside_target_lane(*self._lateral_extent(agent))
@@ -173,37 +163,12 @@ class LaneChangeEnv(AbstractEnv):
                     "speed_limits": cfg.speed_limits, "curvature_limit": cfg.curvature_limit},
         )
 
-    def _spawn_others(self, agent: CurvatureVehicle) -> list[CurvatureVehicle]:
-        """Constant-heading cars in all lanes, ahead and behind, with no initial overlap.
-
-        Within a lane, speeds are sorted so that no car is faster than the one ahead of it:
-        straight constant-speed cars then never run into each other.
-        """
-        cfg, rng = self.cfg, self.np_random
-        count = cfg.vehicles_count
-        if isinstance(count, list | tuple):
-            count = int(rng.integers(count[0], count[1] + 1))
-        placed: list[tuple[int, float]] = []
-        agent_lane, x0 = agent.lane_index[2], float(agent.position[0])
-        min_gap = cfg.vehicle_length + cfg.spawn_gap
-        for _ in range(count):
-            for _ in range(cfg.spawn_attempts):
-                lane = int(rng.integers(cfg.lanes_count))
-                x = float(rng.uniform(x0 - cfg.spawn_behind, x0 + cfg.spawn_ahead))
-                clear = all(abs(x - px) >= min_gap for pl, px in placed if pl == lane)
-                if lane == agent_lane:
-                    clear = clear and abs(x - x0) >= cfg.vehicle_length + 2 * cfg.spawn_gap
-                if clear:
-                    placed.append((lane, x))
-                    break
-        speeds = rng.uniform(*cfg.other_speed, size=len(placed))
-        cars: list[CurvatureVehicle] = []
-        for lane in range(cfg.lanes_count):
-            xs = sorted(x for pl, x in placed if pl == lane)
-            lane_speeds = sorted(speeds[len(cars): len(cars) + len(xs)])
-            for x, v in zip(xs, lane_speeds, strict=True):
-                cars.append(self._car(np.array([x, lane * cfg.lane_width]), float(v), "constant"))
-        return cars
+    def _car_from(self, row: np.ndarray, kind: str) -> CurvatureVehicle:
+        """A car from a scene's state row (x, y, heading, speed, curvature)."""
+        x, y, heading, speed, curvature = (float(v) for v in row)
+        car = self._car(np.array([x, y]), speed, kind)
+        car.heading, car.curvature = heading, curvature
+        return car
 
     # --------------------------------------------------------------- hand-made situations
     def add_car(self, x: float, y: float, speed: float, heading: float = 0.0,

@@ -100,11 +100,9 @@ class LearnedCarController(CarController):
         return every[model_index, torch.arange(len(model_index))]
 
     def reset(self, env: LaneChangeEnv, cars: Sequence[CurvatureVehicle]) -> None:
-        """Each car draws a network and a target lane (from the env's generator: seeded)."""
-        rng = env.np_random
+        """A new episode: each car's network and target lane were drawn with the scene
+        (:func:`memrl.envs.scene.sample_scene`); its frame stack starts afresh."""
         for car in cars:
-            car.target_lane = int(rng.integers(env.cfg.lanes_count))
-            car.policy_index = int(rng.integers(len(self.networks)))
             car.frames = None
 
     def _stack(self, env: LaneChangeEnv, car: CurvatureVehicle) -> np.ndarray:
