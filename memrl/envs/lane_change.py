@@ -18,7 +18,7 @@ from highway_env.road.road import Road, RoadNetwork
 
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import CarController, Opponents, make_opponents
-from memrl.envs.render import BEVRenderer, View
+from memrl.envs.render import BEVRenderer, View, car_corners
 from memrl.envs.scene import sample_scene
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
 
@@ -234,7 +234,7 @@ class LaneChangeEnv(AbstractEnv):
             cars[i].handle_collisions(cars[j], 0.0)
 
     def _lateral_extent(self, car: CurvatureVehicle) -> tuple[float, float]:
-        corners_y = BEVRenderer.car_corners([car])[0, :, 1]
+        corners_y = car_corners([car])[0, :, 1]
         return float(corners_y.min()), float(corners_y.max())
 
     def _hits_wall(self, lo: float, hi: float) -> bool:
@@ -303,7 +303,7 @@ class LaneChangeEnv(AbstractEnv):
             b = self.cfg.bev
             self._bev = BEVRenderer(
                 View(b.width, b.height, b.lateral_scale, b.longitudinal_scale),
-                self.cfg.lanes_count, self.cfg.lane_width,
+                self.cfg.lanes_count, self.cfg.lane_width, (self.cfg.vehicle_length, self.cfg.vehicle_width),
                 show_target_lane=b.show_target_lane, dash_length=b.dash_length,
                 path_length=b.path_length,
                 channels=1 if b.grayscale else 3,
@@ -327,7 +327,7 @@ class LaneChangeEnv(AbstractEnv):
             s = self.cfg.scene
             self._scene = BEVRenderer(
                 View(s.width, s.height, s.lateral_scale, s.longitudinal_scale),
-                self.cfg.lanes_count, self.cfg.lane_width,
+                self.cfg.lanes_count, self.cfg.lane_width, (self.cfg.vehicle_length, self.cfg.vehicle_width),
                 show_target_lane=True, dash_length=self.cfg.bev.dash_length,
             )
         return self._scene.render(

@@ -1,22 +1,27 @@
-"""Bird's-eye-view rendering of the lane-change scene with OpenCV.
+"""Bird's-eye-view rendering of the lane-change scene: many views at once, in torch, on any device.
+
+One rasterizer serves the highway-env reference env (one view per call) and the batched engine
+(every observing car of every env in one call), so both give identical pixels by construction.
 
 The road runs up the picture (driving direction up, lane 0 on the left). Lateral and
 longitudinal scales are separate, so an 84x84 crop spends its pixels on the road: with the
 defaults (0.2 m/px across, 0.8 m/px along) it shows 16.8 m across and 33.6 m ahead and behind.
 
 Pixel convention: pixel (row i, col j) covers the continuous square [j, j+1) x [i, i+1); the
-point the crop is centred on maps to the continuous point (W/2, H/2).
+point the crop is centred on maps to the continuous point (W/2, H/2). A pixel takes the shade
+of whatever covers its centre: a car (rectangle, closed) covers the pixels whose centres lie
+inside it, later cars over earlier ones; the path cue covers every pixel one of its points
+(spaced under half a pixel along the arc) falls in.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
-from torchrl.envs.transforms.functional import rgb_to_grayscale
 
 from memrl.envs.vehicles import CurvatureVehicle
 
@@ -31,19 +36,18 @@ PALETTE: dict[str, tuple[int, int, int]] = {
 }
 """RGB shades. Chosen so that their grayscale levels (ITU-R 601 weights, as TorchRL's
 ``GrayScale``) stay at least 25 levels apart: 0, 64, 94, 130, 167, 205, 255."""
-
-Color = tuple[int, int, int] | int
+LABELS = tuple(PALETTE)
+"""Shade names in label order: a rendered label image holds indices into this tuple."""
+LABEL = {name: i for i, name in enumerate(LABELS)}
 
 
 def gray_palette(palette: dict[str, tuple[int, int, int]]) -> dict[str, int]:
-    """Grayscale level of each shade, computed by TorchRL's own RGB -> gray conversion."""
-    rgb = torch.tensor(list(palette.values()), dtype=torch.uint8).T[:, :, None]  # [3, K, 1]
-    gray = rgb_to_grayscale(rgb)[0, :, 0].tolist()
-    return dict(zip(palette, (int(g) for g in gray), strict=True))
-
-
-_SHIFT = 4  # OpenCV fixed-point fractional bits: sub-pixel accurate polygon corners
-_ONE = 1 << _SHIFT
+    """Grayscale level of each shade: TorchRL's ``rgb_to_grayscale`` formula, in the same dtypes."""
+    # Written out (not imported from torchrl): importing torchrl changes the process's
+    # multiprocessing start method, and the env must not have global side effects.
+    r, g, b = torch.tensor(list(palette.values()), dtype=torch.uint8).unbind(-1)
+    gray = (0.2989 * r + 0.587 * g + 0.114 * b).to(torch.uint8).tolist()
+    return dict(zip(palette, (int(v) for v in gray), strict=True))
 
 
 @dataclass
@@ -56,118 +60,209 @@ class View:
     longitudinal_scale: float
 
 
+def car_corners(vehicles: Sequence[CurvatureVehicle]) -> np.ndarray:
+    """Body corners ``[N, 4, (x, y)]`` [m] of cars, from position, heading and size."""
+    pos = np.array([c.position for c in vehicles], dtype=np.float64).reshape(-1, 2)
+    heading = np.array([c.heading for c in vehicles], dtype=np.float64)
+    half = 0.5 * np.array([[c.LENGTH, c.WIDTH] for c in vehicles]).reshape(-1, 2)
+    signs = np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]], dtype=np.float64)
+    local = signs[None] * half[:, None, :]
+    cos, sin = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    x = local[..., 0] * cos - local[..., 1] * sin
+    y = local[..., 0] * sin + local[..., 1] * cos
+    return np.stack([x, y], axis=-1) + pos[:, None, :]
+
+
+def arc_points(state: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Points ``[..., S, (x, y)]`` [m] at arc lengths ``s`` [S] along the arcs that cars with
+    ``state [..., (x, y, heading, curvature)]`` drive at constant curvature."""
+    x, y, h, k = (state[..., i, None] for i in range(4))
+    straight = k.abs() < 1e-9
+    k_safe = torch.where(straight, torch.ones_like(k), k)
+    dx = torch.where(straight, s * torch.cos(h), (torch.sin(h + k * s) - torch.sin(h)) / k_safe)
+    dy = torch.where(straight, s * torch.sin(h), (torch.cos(h) - torch.cos(h + k * s)) / k_safe)
+    return torch.stack([x + dx, y + dy], dim=-1)
+
+
 class BEVRenderer:
-    """Draws the road and cars of a scene into an RGB uint8 picture centred on any point."""
+    """Draws ``V`` views of the road and cars at once into uint8 pictures.
+
+    Args:
+        view: crop size and scales.
+        lanes_count: lanes of the road (lane i centred at y = i * lane_width).
+        lane_width: [m].
+        car_size: (length, width) of every car [m].
+        show_target_lane: paint the target lane in its own shade.
+        dash_length: lane-marking dash (and gap) length [m].
+        path_length: length [m] of the viewing car's path drawn ahead of it at its current
+            heading and curvature (0: none).
+        palette: RGB shades by name (default :data:`PALETTE`).
+        channels: 3 for RGB; 1 draws each shade's grayscale level directly, equal to
+            TorchRL's ``GrayScale`` of the RGB picture.
+        device: where the pictures are drawn.
+    """
 
     def __init__(
         self,
         view: View,
         lanes_count: int,
         lane_width: float,
+        car_size: tuple[float, float] = (5.0, 2.0),
         *,
         show_target_lane: bool = True,
         dash_length: float = 3.0,
         path_length: float = 0.0,
         palette: dict[str, tuple[int, int, int]] | None = None,
         channels: int = 3,
+        device: torch.device | str = "cpu",
     ) -> None:
-        """Args:
-            view: crop size and scales.
-            lanes_count: lanes of the road (lane i centred at y = i * lane_width).
-            lane_width: [m].
-            show_target_lane: paint the target lane in its own shade.
-            dash_length: lane-marking dash (and gap) length [m].
-            path_length: length [m] of the ``ego`` car's path drawn ahead of it at its
-                current heading and curvature (0: none).
-            palette: RGB shades by name (default :data:`PALETTE`).
-            channels: 3 for RGB; 1 draws each shade's grayscale level directly, equal to
-                TorchRL's ``GrayScale`` of the RGB picture at a third of the drawing work.
-        """
         if channels not in (1, 3):
             raise ValueError(f"channels must be 1 or 3, got {channels}")
-        self.channels = channels
-        self.view = view
-        self.lanes_count = lanes_count
-        self.lane_width = lane_width
-        self.show_target_lane = show_target_lane
-        self.dash_length = dash_length
-        self.path_length = path_length
+        self.view, self.channels, self.device = view, channels, torch.device(device)
+        self.lanes_count, self.lane_width = lanes_count, lane_width
+        self.car_length, self.car_width = float(car_size[0]), float(car_size[1])
+        self.show_target_lane, self.dash_length, self.path_length = show_target_lane, dash_length, path_length
         rgb = dict(PALETTE if palette is None else palette)
-        self.palette: dict[str, Color] = dict(rgb) if channels == 3 else dict(gray_palette(rgb))
-        self._half_span = 0.5 * view.height * view.longitudinal_scale  # [m] ahead/behind shown
+        shades = [rgb[name] for name in LABELS]
+        if channels == 3:
+            self.table = torch.tensor(shades, dtype=torch.uint8, device=self.device)  # [K, 3]
+        else:
+            gray = gray_palette(dict(zip(LABELS, shades, strict=True)))
+            self.table = torch.tensor([gray[n] for n in LABELS], dtype=torch.uint8, device=self.device)
+        self.palette = {n: (tuple(shades[i]) if channels == 3 else int(self.table[i])) for i, n in enumerate(LABELS)}
+        f64 = dict(dtype=torch.float64, device=self.device)
+        h, w = view.height, view.width
+        # World offsets [m] of the pixel centres from the view centre: rows along x, cols across.
+        self._row_dx = (0.5 * h - torch.arange(h, **f64) - 0.5) * view.longitudinal_scale
+        self._col_dy = (torch.arange(w, **f64) + 0.5 - 0.5 * w) * view.lateral_scale
+        half_diag = 0.5 * math.hypot(self.car_length, self.car_width)
+        self._half_rows = math.ceil(half_diag / view.longitudinal_scale) + 1
+        self._half_cols = math.ceil(half_diag / view.lateral_scale) + 1
+        i = torch.arange(2 * self._half_rows + 1, device=self.device)
+        j = torch.arange(2 * self._half_cols + 1, device=self.device)
+        self._win = (i[:, None] - self._half_rows, j[None, :] - self._half_cols)  # window offsets [px]
+        self._half_span = 0.5 * h * view.longitudinal_scale  # [m] shown ahead and behind
+        # dashes that can show in a crop: 2 * half_span of road plus a period on each side
+        self._dash_k = torch.arange(math.ceil(2 * self._half_span / (2 * dash_length)) + 3, **f64)
+        step = 0.5 * min(view.lateral_scale, view.longitudinal_scale)
+        self._path_s = torch.linspace(0.0, path_length, max(2, math.ceil(path_length / step) + 1), **f64)
 
-    def to_pixels(self, center: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """Map world points ``[..., (x, y)]`` [m] to continuous pixel coordinates ``(col, row)``."""
+    # ------------------------------------------------------------------------ batched
+    def labels(
+        self,
+        center: torch.Tensor,
+        target_lane: torch.Tensor,
+        cars: torch.Tensor,
+        car_label: torch.Tensor,
+        path: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Label pictures ``[V, H, W]`` (uint8 indices into :data:`LABELS`).
+
+        Args:
+            center: ``[V, 2]`` world point (x, y) [m] at each crop's centre (float64).
+            target_lane: ``[V]`` lane painted in the target shade (-1: none).
+            cars: ``[V, C, 3]`` (x, y, heading) of the cars to draw, in draw order.
+            car_label: ``[V, C]`` label of each car (-1: no car in that slot).
+            path: ``[V, 4]`` (x, y, heading, curvature) of each view's own car, whose path
+                is drawn when ``path_length > 0`` (None: no path).
+        """
         v = self.view
-        col = 0.5 * v.width + (points[..., 1] - center[1]) / v.lateral_scale
-        row = 0.5 * v.height - (points[..., 0] - center[0]) / v.longitudinal_scale
-        return np.stack([col, row], axis=-1)
+        label = self._background(center, target_lane)  # [V, H, W]
+        flat = label.view(len(center), -1)
+        top = self._top_car(center, cars, car_label)  # [V, H * W]: slot index or -1
+        covered = top >= 0
+        car_shade = car_label.gather(1, top.clamp(min=0)).to(torch.uint8)
+        flat = torch.where(covered, car_shade, flat)
+        if path is not None and self.path_length > 0:
+            pts = arc_points(path, self._path_s)  # [V, S, 2]
+            col = torch.floor(0.5 * v.width + (pts[..., 1] - center[:, None, 1]) / v.lateral_scale)
+            row = torch.floor(0.5 * v.height - (pts[..., 0] - center[:, None, 0]) / v.longitudinal_scale)
+            index = self._flat_index(row.long(), col.long())
+            hit = torch.zeros(len(center), v.height * v.width + 1, dtype=torch.bool, device=self.device)
+            hit.scatter_(1, index, True)
+            flat = torch.where(hit[:, :-1], LABEL["agent"], flat)
+        return flat.view(-1, v.height, v.width)
 
-    def _fill_poly(self, img: np.ndarray, poly: np.ndarray, color: Color) -> None:
-        """Fill a convex polygon ``[4, (col, row)]`` given in continuous pixel coordinates."""
-        # Continuous coords -> OpenCV's pixel-centre coords (-0.5). OpenCV fills every pixel
-        # whose centre is on or inside the outline, so pull each corner in by half a pixel per
-        # axis: a box spanning [a, b) then covers exactly the pixels with centres in it.
-        inward = 0.5 * np.sign(poly - poly.mean(axis=0))
-        pts = np.round((poly - 0.5 - inward) * _ONE).astype(np.int32)
-        cv2.fillConvexPoly(img, pts, color, lineType=cv2.LINE_8, shift=_SHIFT)
+    def render_batch(self, *args: torch.Tensor | None, **kwargs: torch.Tensor | None) -> torch.Tensor:
+        """Pictures ``[V, H, W]`` (grayscale) or ``[V, H, W, 3]`` (RGB); arguments of :meth:`labels`."""
+        return self.table[self.labels(*args, **kwargs).long()]  # type: ignore[arg-type]
 
-    def _cols(self, center: np.ndarray, y0: float, y1: float) -> slice:
-        """Pixel columns whose centres lie in the world band [y0, y1) across the road."""
-        v = self.view
-        a = 0.5 * v.width + (y0 - center[1]) / v.lateral_scale
-        b = 0.5 * v.width + (y1 - center[1]) / v.lateral_scale
-        return slice(max(int(np.ceil(a - 0.5)), 0), max(int(np.ceil(b - 0.5)), 0))
+    def _background(self, center: torch.Tensor, target_lane: torch.Tensor) -> torch.Tensor:
+        """Road, target lane and markings: a label per column, dashes on chosen rows."""
+        v, w, n = self.view, self.lane_width, self.lanes_count
+        j = torch.arange(v.width, device=self.device)
+        cy = center[:, 1:2]
 
-    def _background(self, img: np.ndarray, center: np.ndarray, target_lane: int | None) -> None:
-        """Road, target lane and markings: axis-aligned, so filled by slicing (exact, fast)."""
-        v, p, w, n = self.view, self.palette, self.lane_width, self.lanes_count
-        img[:] = p["offroad"]
+        def band(y0: torch.Tensor | float, y1: torch.Tensor | float) -> torch.Tensor:
+            """[V, W]: columns whose centres lie in the world band [y0, y1) across the road."""
+            a = torch.ceil(0.5 * v.width + (y0 - cy) / v.lateral_scale - 0.5)
+            b = torch.ceil(0.5 * v.width + (y1 - cy) / v.lateral_scale - 0.5)
+            return (j >= a) & (j < b)
+
         left, right = -0.5 * w, (n - 0.5) * w
-        img[:, self._cols(center, left, right)] = p["road"]
-        if self.show_target_lane and target_lane is not None:
-            y = target_lane * w
-            img[:, self._cols(center, y - 0.5 * w, y + 0.5 * w)] = p["target_lane"]
+        col = torch.full((len(center), v.width), LABEL["offroad"], dtype=torch.uint8, device=self.device)
+        col[band(left, right)] = LABEL["road"]
+        if self.show_target_lane:
+            t = (target_lane.to(torch.float64) * w)[:, None]
+            col[band(t - 0.5 * w, t + 0.5 * w) & (target_lane[:, None] >= 0)] = LABEL["target_lane"]
         line = max(v.lateral_scale, 0.15)  # markings: at least 1 px, at most 0.15 m wide
-        img[:, self._cols(center, left, left + line)] = p["marking"]
-        img[:, self._cols(center, right - line, right)] = p["marking"]
+        col[band(left, left + line) | band(right - line, right)] = LABEL["marking"]
+        divider = torch.zeros_like(col, dtype=torch.bool)
+        for yd in (np.arange(1, n) - 0.5) * w:
+            divider |= band(float(yd - 0.5 * line), float(yd + 0.5 * line))
+        # dash k covers [s_k, s_k + L] along the road, s_k = first + k * period
         period = 2.0 * self.dash_length
-        x_top = center[0] + 0.5 * v.height * v.longitudinal_scale
-        starts = np.arange(np.floor((x_top - 2 * self._half_span) / period) * period - period,
-                           x_top + period, period)
-        # dash [s, s + L] along the road -> rows (row grows backwards along x)
-        r0 = np.ceil(0.5 * v.height - (starts + self.dash_length - center[0])
-                     / v.longitudinal_scale - 0.5).astype(int).clip(0, v.height)
-        r1 = np.ceil(0.5 * v.height - (starts - center[0])
-                     / v.longitudinal_scale - 0.5).astype(int).clip(0, v.height)
-        for y in (np.arange(1, n) - 0.5) * w:
-            cols = self._cols(center, y - 0.5 * line, y + 0.5 * line)
-            for i, j in zip(r0, r1, strict=True):
-                if j > i:
-                    img[i:j, cols] = p["marking"]
+        x_top = center[:, 0:1] + 0.5 * v.height * v.longitudinal_scale
+        first = torch.floor((x_top - 2 * self._half_span) / period) * period - period
+        starts = first + self._dash_k * period  # [V, K]
+        r0 = torch.ceil(0.5 * v.height - (starts + self.dash_length - center[:, 0:1]) / v.longitudinal_scale - 0.5)
+        r1 = torch.ceil(0.5 * v.height - (starts - center[:, 0:1]) / v.longitudinal_scale - 0.5)
+        r = torch.arange(v.height, device=self.device).view(1, 1, -1)
+        dash = ((r >= r0[..., None]) & (r < r1[..., None])).any(1)  # [V, H]
+        marking = torch.tensor(LABEL["marking"], dtype=torch.uint8, device=self.device)
+        return torch.where(dash[:, :, None] & divider[:, None, :], marking, col[:, None, :])
 
-    @staticmethod
-    def car_corners(vehicles: Sequence[CurvatureVehicle]) -> np.ndarray:
-        """Body corners ``[N, 4, (x, y)]`` [m] of cars, from position, heading and size."""
-        pos = np.array([c.position for c in vehicles], dtype=np.float64).reshape(-1, 2)
-        heading = np.array([c.heading for c in vehicles], dtype=np.float64)
-        half = 0.5 * np.array([[c.LENGTH, c.WIDTH] for c in vehicles]).reshape(-1, 2)
-        signs = np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]], dtype=np.float64)
-        local = signs[None] * half[:, None, :]
-        cos, sin = np.cos(heading)[:, None], np.sin(heading)[:, None]
-        x = local[..., 0] * cos - local[..., 1] * sin
-        y = local[..., 0] * sin + local[..., 1] * cos
-        return np.stack([x, y], axis=-1) + pos[:, None, :]
+    def _flat_index(self, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
+        """Flat pixel index, or ``H * W`` (a spare slot) for points outside the picture."""
+        v = self.view
+        inside = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width)
+        return torch.where(inside, row * v.width + col, v.height * v.width)
 
+    def _top_car(self, center: torch.Tensor, cars: torch.Tensor, car_label: torch.Tensor) -> torch.Tensor:
+        """For each pixel, the last car slot whose body covers its centre (-1: none)."""
+        v = self.view
+        n_views, n_cars = car_label.shape
+        rel_x = cars[..., 0] - center[:, None, 0]  # [V, C] car centre relative to the view [m]
+        rel_y = cars[..., 1] - center[:, None, 1]
+        row_c = torch.floor(0.5 * v.height - rel_x / v.longitudinal_scale).long()
+        col_c = torch.floor(0.5 * v.width + rel_y / v.lateral_scale).long()
+        wi, wj = self._win
+        row = row_c[..., None, None] + wi  # [V, C, R, 1]
+        col = col_c[..., None, None] + wj  # [V, C, 1, Q]
+        # pixel centre minus car centre [m]
+        dx = (0.5 * v.height - row.to(rel_x.dtype) - 0.5) * v.longitudinal_scale - rel_x[..., None, None]
+        dy = (col.to(rel_y.dtype) + 0.5 - 0.5 * v.width) * v.lateral_scale - rel_y[..., None, None]
+        cos, sin = torch.cos(cars[..., 2])[..., None, None], torch.sin(cars[..., 2])[..., None, None]
+        u = dx * cos + dy * sin
+        w = dy * cos - dx * sin
+        inside = (u.abs() <= 0.5 * self.car_length) & (w.abs() <= 0.5 * self.car_width)
+        inside &= (car_label >= 0)[..., None, None]
+        index = self._flat_index(row, col).expand(inside.shape)
+        slot = torch.arange(n_cars, device=self.device).view(1, -1, 1, 1).expand(inside.shape)
+        src = torch.where(inside, slot, -1).reshape(n_views, -1)
+        top = torch.full((n_views, v.height * v.width + 1), -1, dtype=torch.long, device=self.device)
+        top.scatter_reduce_(1, index.reshape(n_views, -1), src, reduce="amax")
+        return top[:, :-1]
+
+    # ---------------------------------------------------------------- one view (reference env)
     def render(
         self,
         center: np.ndarray,
         vehicles: Sequence[CurvatureVehicle],
         target_lane: int | None = None,
         ego: CurvatureVehicle | None = None,
-        out: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Draw the scene around ``center`` (x, y) [m].
+        """Draw one scene around ``center`` (x, y) [m] with highway-env cars.
 
         Args:
             center: world point at the crop centre, usually a car's position.
@@ -177,39 +272,35 @@ class BEVRenderer:
             ego: the car whose view this is, drawn in the 'agent' shade. When it is not the
                 agent, the agent is drawn as a 'learned' car: to a car driven by a copy of
                 the agent, the agent is another learning driver.
-            out: optional uint8 array of the result's shape to draw into.
 
         Returns:
             ``(H, W, 3)`` uint8 RGB picture, or ``(H, W)`` grayscale when ``channels == 1``.
         """
-        v, p = self.view, self.palette
-        shape = (v.height, v.width, 3) if self.channels == 3 else (v.height, v.width)
-        img = out if out is not None else np.empty(shape, dtype=np.uint8)
-        self._background(img, center, target_lane)
-        cars = [c for c in vehicles if abs(c.position[0] - center[0]) <= self._half_span + 10.0]
-        if cars:
-            polys = self.to_pixels(center, self.car_corners(cars))
-            for car, poly in zip(cars, polys, strict=True):
-                kind = "agent" if car is ego else ("learned" if car.kind == "agent" else car.kind)
-                self._fill_poly(img, poly, p[kind])
+        f64 = dict(dtype=torch.float64, device=self.device)
+        cars = torch.tensor([[c.position[0], c.position[1], c.heading] for c in vehicles], **f64).view(1, -1, 3)
+        kinds = [("agent" if c is ego else ("learned" if c.kind == "agent" else c.kind)) for c in vehicles]
+        labels = torch.tensor([[LABEL[k] for k in kinds]], dtype=torch.long, device=self.device).view(1, -1)
+        path = None
         if ego is not None and self.path_length > 0:
-            self._draw_path(img, center, ego)
-        return img
+            path = torch.tensor([[ego.position[0], ego.position[1], ego.heading, ego.curvature]], **f64)
+        img = self.render_batch(
+            torch.tensor([[float(center[0]), float(center[1])]], **f64),
+            torch.tensor([-1 if target_lane is None else int(target_lane)], device=self.device),
+            cars, labels, path)
+        return img[0].cpu().numpy()
 
-    def path_points(self, car: CurvatureVehicle, points: int = 12) -> np.ndarray:
-        """``[points, (x, y)]`` [m]: the arc ``car`` drives over ``path_length`` metres at its
-        current heading and curvature."""
-        s = np.linspace(0.0, self.path_length, points)
-        k, h = float(car.curvature), float(car.heading)
-        if abs(k) < 1e-9:
-            dx, dy = s * np.cos(h), s * np.sin(h)
-        else:
-            dx = (np.sin(h + k * s) - np.sin(h)) / k
-            dy = (np.cos(h) - np.cos(h + k * s)) / k
-        return np.stack([car.position[0] + dx, car.position[1] + dy], axis=-1)
+    def to_pixels(self, center: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Map world points ``[..., (x, y)]`` [m] to continuous pixel coordinates ``(col, row)``."""
+        v = self.view
+        col = 0.5 * v.width + (points[..., 1] - center[1]) / v.lateral_scale
+        row = 0.5 * v.height - (points[..., 0] - center[0]) / v.longitudinal_scale
+        return np.stack([col, row], axis=-1)
 
-    def _draw_path(self, img: np.ndarray, center: np.ndarray, car: CurvatureVehicle) -> None:
-        # Hand-written: highway-env draws no planned path in its observations.
-        px = self.to_pixels(center, self.path_points(car)) - 0.5  # pixel-centre coords
-        cv2.polylines(img, [np.round(px * _ONE).astype(np.int32)], False, self.palette["agent"],
-                      1, cv2.LINE_8, shift=_SHIFT)
+    def path_points(self, car: CurvatureVehicle) -> np.ndarray:
+        """``[S, (x, y)]`` [m]: the points of the arc ``car`` drives over ``path_length`` metres
+        at its current heading and curvature, as drawn."""
+        state = torch.tensor([car.position[0], car.position[1], car.heading, car.curvature],
+                             dtype=torch.float64, device=self.device)
+        return arc_points(state, self._path_s).cpu().numpy()
+
+    car_corners = staticmethod(car_corners)
