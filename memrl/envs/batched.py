@@ -287,8 +287,9 @@ class BatchedLaneChange:
         edges = torch.cat([a.roll(-1, dims=2) - a, b.roll(-1, dims=2) - b], dim=2)  # [N, K, 8, 2]
         normal = torch.stack([-edges[..., 1], edges[..., 0]], dim=-1)
         normal = normal / torch.sqrt(normal[..., 0] ** 2 + normal[..., 1] ** 2)[..., None]
-        pa = (a[:, :, None] * normal[:, :, :, None]).sum(-1)  # [N, K, 8 axes, 4 corners]
-        pb = (b[:, :, None] * normal[:, :, :, None]).sum(-1)
+        nx, ny = normal[..., 0, None], normal[..., 1, None]  # [N, K, 8, 1]
+        pa = a[:, :, None, :, 0] * nx + a[:, :, None, :, 1] * ny  # [N, K, 8 axes, 4 corners]
+        pb = b[:, :, None, :, 0] * nx + b[:, :, None, :, 1] * ny
         min_a, max_a, min_b, max_b = pa.min(-1).values, pa.max(-1).values, pb.min(-1).values, pb.max(-1).values
         gap = torch.where(min_a < min_b, min_b - max_a, min_a - max_b)
         hit = (gap <= 0).all(-1) & close & self.present[:, 1:]

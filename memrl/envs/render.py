@@ -132,15 +132,19 @@ class BEVRenderer:
         self.palette = {n: (tuple(shades[i]) if channels == 3 else int(self.table[i])) for i, n in enumerate(LABELS)}
         f64 = dict(dtype=torch.float64, device=self.device)
         h, w = view.height, view.width
-        # World offsets [m] of the pixel centres from the view centre: rows along x, cols across.
-        self._row_dx = (0.5 * h - torch.arange(h, **f64) - 0.5) * view.longitudinal_scale
-        self._col_dy = (torch.arange(w, **f64) + 0.5 - 0.5 * w) * view.lateral_scale
         half_diag = 0.5 * math.hypot(self.car_length, self.car_width)
-        self._half_rows = math.ceil(half_diag / view.longitudinal_scale) + 1
-        self._half_cols = math.ceil(half_diag / view.lateral_scale) + 1
-        i = torch.arange(2 * self._half_rows + 1, device=self.device)
-        j = torch.arange(2 * self._half_cols + 1, device=self.device)
-        self._win = (i[:, None] - self._half_rows, j[None, :] - self._half_cols)  # window offsets [px]
+        # largest window a car's bounding box needs, at any heading [px]
+        self._win_rows = math.ceil(2 * half_diag / view.longitudinal_scale) + 3
+        self._win_cols = math.ceil(2 * half_diag / view.lateral_scale) + 3
+        f32 = dict(dtype=torch.float32, device=self.device)
+        self._win_i = torch.arange(self._win_rows, **f32)[:, None]
+        self._win_j = torch.arange(self._win_cols, **f32)[None, :]
+        self._cols_j = torch.arange(w, device=self.device)
+        self._rows_h = torch.arange(h, device=self.device)[None, :]
+        self._dividers = torch.tensor((np.arange(1, lanes_count) - 0.5) * lane_width, **f64)
+        line = max(view.lateral_scale, 0.15)
+        self._div_k = torch.arange(math.ceil(line / view.lateral_scale) + 1, **f64)  # columns per divider
+        self._label_ids = torch.arange(len(LABELS), dtype=torch.uint8, device=self.device)
         self._half_span = 0.5 * h * view.longitudinal_scale  # [m] shown ahead and behind
         # dashes that can show in a crop: 2 * half_span of road plus a period on each side
         self._dash_k = torch.arange(math.ceil(2 * self._half_span / (2 * dash_length)) + 3, **f64)
@@ -148,7 +152,7 @@ class BEVRenderer:
         self._path_s = torch.linspace(0.0, path_length, max(2, math.ceil(path_length / step) + 1), **f64)
 
     # ------------------------------------------------------------------------ batched
-    def labels(
+    def render_batch(
         self,
         center: torch.Tensor,
         target_lane: torch.Tensor,
@@ -156,103 +160,119 @@ class BEVRenderer:
         car_label: torch.Tensor,
         path: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Label pictures ``[V, H, W]`` (uint8 indices into :data:`LABELS`).
+        """Pictures ``[V, H, W]`` (grayscale) or ``[V, H, W, 3]`` (RGB) of ``V`` views.
 
         Args:
             center: ``[V, 2]`` world point (x, y) [m] at each crop's centre (float64).
             target_lane: ``[V]`` lane painted in the target shade (-1: none).
             cars: ``[V, C, 3]`` (x, y, heading) of the cars to draw, in draw order.
-            car_label: ``[V, C]`` label of each car (-1: no car in that slot).
+            car_label: ``[V, C]`` index into :data:`LABELS` of each car (-1: no car in that slot).
             path: ``[V, 4]`` (x, y, heading, curvature) of each view's own car, whose path
                 is drawn when ``path_length > 0`` (None: no path).
         """
         v = self.view
-        label = self._background(center, target_lane)  # [V, H, W]
-        flat = label.view(len(center), -1)
-        top = self._top_car(center, cars, car_label)  # [V, H * W]: slot index or -1
-        covered = top >= 0
-        car_shade = car_label.gather(1, top.clamp(min=0)).to(torch.uint8)
-        flat = torch.where(covered, car_shade, flat)
+        n_views, size = len(center), v.height * v.width
+        # Gray: paint the shades themselves; RGB: paint labels, then look their colours up.
+        values = self.table if self.channels == 1 else self._label_ids
+        # all pictures in one flat buffer, plus a spare last element that takes off-picture writes
+        flat = torch.empty(n_views * size + 1, dtype=torch.uint8, device=self.device)
+        base = torch.arange(n_views, device=self.device) * size  # [V] offset of each picture
+        self._background(center, target_lane, values, flat, base)
+        self._paint_cars(flat, base, center, cars, car_label, values)
         if path is not None and self.path_length > 0:
             pts = arc_points(path, self._path_s)  # [V, S, 2]
-            col = torch.floor(0.5 * v.width + (pts[..., 1] - center[:, None, 1]) / v.lateral_scale)
-            row = torch.floor(0.5 * v.height - (pts[..., 0] - center[:, None, 0]) / v.longitudinal_scale)
-            index = self._flat_index(row.long(), col.long())
-            hit = torch.zeros(len(center), v.height * v.width + 1, dtype=torch.bool, device=self.device)
-            hit.scatter_(1, index, True)
-            flat = torch.where(hit[:, :-1], LABEL["agent"], flat)
-        return flat.view(-1, v.height, v.width)
+            col = torch.floor(0.5 * v.width + (pts[..., 1] - center[:, None, 1]) / v.lateral_scale).long()
+            row = torch.floor(0.5 * v.height - (pts[..., 0] - center[:, None, 0]) / v.longitudinal_scale).long()
+            ok = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width)
+            index = torch.where(ok, base[:, None] + row * v.width + col, n_views * size)
+            flat.scatter_(0, index.reshape(-1), values[LABEL["agent"]].expand(index.numel()))
+        img = flat[:-1].view(n_views, v.height, v.width)
+        return img if self.channels == 1 else self.table[img.long()]
 
-    def render_batch(self, *args: torch.Tensor | None, **kwargs: torch.Tensor | None) -> torch.Tensor:
-        """Pictures ``[V, H, W]`` (grayscale) or ``[V, H, W, 3]`` (RGB); arguments of :meth:`labels`."""
-        return self.table[self.labels(*args, **kwargs).long()]  # type: ignore[arg-type]
-
-    def _background(self, center: torch.Tensor, target_lane: torch.Tensor) -> torch.Tensor:
-        """Road, target lane and markings: a label per column, dashes on chosen rows."""
+    def _background(self, center: torch.Tensor, target_lane: torch.Tensor, values: torch.Tensor,
+                    flat: torch.Tensor, base: torch.Tensor) -> None:
+        """Road, target lane and markings into the pictures: a shade per column, copied down
+        every row, then the dashes of the lane dividers."""
         v, w, n = self.view, self.lane_width, self.lanes_count
-        j = torch.arange(v.width, device=self.device)
-        cy = center[:, 1:2]
+        j, cy = self._cols_j, center[:, 1:2]
+
+        def edges(y: torch.Tensor | float) -> torch.Tensor:
+            """The first column whose centre lies at or beyond world y across the road."""
+            return torch.ceil(0.5 * v.width + (y - cy) / v.lateral_scale - 0.5)
 
         def band(y0: torch.Tensor | float, y1: torch.Tensor | float) -> torch.Tensor:
             """[V, W]: columns whose centres lie in the world band [y0, y1) across the road."""
-            a = torch.ceil(0.5 * v.width + (y0 - cy) / v.lateral_scale - 0.5)
-            b = torch.ceil(0.5 * v.width + (y1 - cy) / v.lateral_scale - 0.5)
-            return (j >= a) & (j < b)
+            return (j >= edges(y0)) & (j < edges(y1))
 
         left, right = -0.5 * w, (n - 0.5) * w
-        col = torch.full((len(center), v.width), LABEL["offroad"], dtype=torch.uint8, device=self.device)
-        col[band(left, right)] = LABEL["road"]
+        col = torch.where(band(left, right), values[LABEL["road"]], values[LABEL["offroad"]])
         if self.show_target_lane:
             t = (target_lane.to(torch.float64) * w)[:, None]
-            col[band(t - 0.5 * w, t + 0.5 * w) & (target_lane[:, None] >= 0)] = LABEL["target_lane"]
+            col = torch.where(band(t - 0.5 * w, t + 0.5 * w) & (target_lane[:, None] >= 0),
+                              values[LABEL["target_lane"]], col)
         line = max(v.lateral_scale, 0.15)  # markings: at least 1 px, at most 0.15 m wide
-        col[band(left, left + line) | band(right - line, right)] = LABEL["marking"]
-        divider = torch.zeros_like(col, dtype=torch.bool)
-        for yd in (np.arange(1, n) - 0.5) * w:
-            divider |= band(float(yd - 0.5 * line), float(yd + 0.5 * line))
-        # dash k covers [s_k, s_k + L] along the road, s_k = first + k * period
+        col = torch.where(band(left, left + line) | band(right - line, right), values[LABEL["marking"]], col)
+        n_views = len(center)
+        flat[:-1].view(n_views, v.height, v.width).copy_(col[:, None, :].expand(-1, v.height, -1))
+        if n < 2:
+            return
+        # dash k covers [s_k, s_k + L] along the road, s_k = first + k * period: rows [r0, r1)
         period = 2.0 * self.dash_length
         x_top = center[:, 0:1] + 0.5 * v.height * v.longitudinal_scale
         first = torch.floor((x_top - 2 * self._half_span) / period) * period - period
         starts = first + self._dash_k * period  # [V, K]
         r0 = torch.ceil(0.5 * v.height - (starts + self.dash_length - center[:, 0:1]) / v.longitudinal_scale - 0.5)
         r1 = torch.ceil(0.5 * v.height - (starts - center[:, 0:1]) / v.longitudinal_scale - 0.5)
-        r = torch.arange(v.height, device=self.device).view(1, 1, -1)
-        dash = ((r >= r0[..., None]) & (r < r1[..., None])).any(1)  # [V, H]
-        marking = torch.tensor(LABEL["marking"], dtype=torch.uint8, device=self.device)
-        return torch.where(dash[:, :, None] & divider[:, None, :], marking, col[:, None, :])
+        # +1 where a dash starts, -1 where it ends, summed down the picture
+        count = torch.zeros(n_views, v.height + 1, dtype=r0.dtype, device=self.device)
+        count.scatter_add_(1, r0.clamp(0, v.height).long(), torch.ones_like(r0))
+        count.scatter_add_(1, r1.clamp(0, v.height).long(), -torch.ones_like(r0))
+        dash = count[:, :-1].cumsum(1) > 0  # [V, H]
+        # the divider columns: those of the bands [yd - line/2, yd + line/2), at most a few each
+        yd = self._dividers - 0.5 * line  # [D]
+        a, b = edges(yd), edges(yd + line)  # [V, D]
+        cols = (a[..., None] + self._div_k).long()  # [V, D, k]
+        ok = (cols < b[..., None]) & (cols >= 0) & (cols < v.width)
+        cols, ok = cols.reshape(n_views, 1, -1), ok.reshape(n_views, 1, -1)
+        pixel = base[:, None, None] + self._rows_h[:, :, None] * v.width + cols  # [V, H, D * k]
+        index = torch.where(dash[..., None] & ok, pixel, flat.numel() - 1)
+        flat.scatter_(0, index.reshape(-1), values[LABEL["marking"]].expand(index.numel()))
 
-    def _flat_index(self, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
-        """Flat pixel index, or ``H * W`` (a spare slot) for points outside the picture."""
+    def _paint_cars(self, flat: torch.Tensor, base: torch.Tensor, center: torch.Tensor, cars: torch.Tensor,
+                    car_label: torch.Tensor, values: torch.Tensor) -> None:
+        """Paint each car over the pixels whose centres its body covers, slot after slot
+        (later cars over earlier ones), looking only at a window around each car."""
         v = self.view
-        inside = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width)
-        return torch.where(inside, row * v.width + col, v.height * v.width)
-
-    def _top_car(self, center: torch.Tensor, cars: torch.Tensor, car_label: torch.Tensor) -> torch.Tensor:
-        """For each pixel, the last car slot whose body covers its centre (-1: none)."""
-        v = self.view
-        n_views, n_cars = car_label.shape
-        rel_x = cars[..., 0] - center[:, None, 0]  # [V, C] car centre relative to the view [m]
-        rel_y = cars[..., 1] - center[:, None, 1]
-        row_c = torch.floor(0.5 * v.height - rel_x / v.longitudinal_scale).long()
-        col_c = torch.floor(0.5 * v.width + rel_y / v.lateral_scale).long()
-        wi, wj = self._win
-        row = row_c[..., None, None] + wi  # [V, C, R, 1]
-        col = col_c[..., None, None] + wj  # [V, C, 1, Q]
-        # pixel centre minus car centre [m]
-        dx = (0.5 * v.height - row.to(rel_x.dtype) - 0.5) * v.longitudinal_scale - rel_x[..., None, None]
-        dy = (col.to(rel_y.dtype) + 0.5 - 0.5 * v.width) * v.lateral_scale - rel_y[..., None, None]
-        cos, sin = torch.cos(cars[..., 2])[..., None, None], torch.sin(cars[..., 2])[..., None, None]
-        u = dx * cos + dy * sin
-        w = dy * cos - dx * sin
-        inside = (u.abs() <= 0.5 * self.car_length) & (w.abs() <= 0.5 * self.car_width)
-        inside &= (car_label >= 0)[..., None, None]
-        index = self._flat_index(row, col).expand(inside.shape)
-        slot = torch.arange(n_cars, device=self.device).view(1, -1, 1, 1).expand(inside.shape)
-        src = torch.where(inside, slot, -1).reshape(n_views, -1)
-        top = torch.full((n_views, v.height * v.width + 1), -1, dtype=torch.long, device=self.device)
-        top.scatter_reduce_(1, index.reshape(n_views, -1), src, reduce="amax")
-        return top[:, :-1]
+        spare = flat.numel() - 1
+        rel = (cars[..., :2] - center[:, None, :]).to(torch.float32)  # [V, C, 2] car centre from view centre [m]
+        heading = cars[..., 2]
+        cos, sin = torch.cos(heading).to(torch.float32), torch.sin(heading).to(torch.float32)
+        # half extents of the car's bounding box along the road (rows) and across it (cols) [px]
+        half_x = (0.5 * self.car_length * cos.abs() + 0.5 * self.car_width * sin.abs()) / v.longitudinal_scale
+        half_y = (0.5 * self.car_length * sin.abs() + 0.5 * self.car_width * cos.abs()) / v.lateral_scale
+        row_c = 0.5 * v.height - rel[..., 0] / v.longitudinal_scale  # car centre [continuous px]
+        col_c = 0.5 * v.width + rel[..., 1] / v.lateral_scale
+        row0, col0 = torch.floor(row_c - half_x - 1), torch.floor(col_c - half_y - 1)  # window corner
+        if self.device.type == "cpu":  # the smallest window holding every box (one read per call)
+            n_rows = int((torch.ceil(row_c + half_x + 1) - row0).max().clamp(min=1))
+            n_cols = int((torch.ceil(col_c + half_y + 1) - col0).max().clamp(min=1))
+        else:  # fixed shapes on accelerators: no host sync, same pixels
+            n_rows, n_cols = self._win_rows, self._win_cols
+        row = row0[..., None, None] + self._win_i[:n_rows]  # [V, C, R, 1]
+        col = col0[..., None, None] + self._win_j[:, :n_cols]  # [V, C, 1, Q]
+        dx = (0.5 * v.height - 0.5 - row) * v.longitudinal_scale - rel[..., 0, None, None]  # pixel centre - car [m]
+        dy = (col + 0.5 - 0.5 * v.width) * v.lateral_scale - rel[..., 1, None, None]
+        cos, sin = cos[..., None, None], sin[..., None, None]
+        covered = ((dx * cos + dy * sin).abs() <= 0.5 * self.car_length) & \
+                  ((dy * cos - dx * sin).abs() <= 0.5 * self.car_width)
+        row_ok = (row >= 0) & (row < v.height) & (car_label >= 0)[..., None, None]
+        col_ok = (col >= 0) & (col < v.width)
+        pixel = (row * v.width + col).long() + base[:, None, None, None]
+        index = torch.where(covered & (row_ok & col_ok), pixel, spare)  # [V, C, R, Q]
+        shade = values[car_label.clamp(min=0)]  # [V, C]
+        size = n_rows * n_cols
+        for slot in range(car_label.shape[1]):  # in draw order; one car covers a pixel once
+            flat.scatter_(0, index[:, slot].reshape(-1), shade[:, slot, None].expand(-1, size).reshape(-1))
 
     # ---------------------------------------------------------------- one view (reference env)
     def render(
