@@ -10,7 +10,8 @@ ENV_ID = "memrl/LaneChange-v0"
 def register_envs() -> None:
     """Register ``memrl/LaneChange-v0`` with gymnasium (idempotent)."""
     if ENV_ID not in registry:
-        register(id=ENV_ID, entry_point="memrl.envs.lane_change:LaneChangeEnv")
+        register(id=ENV_ID, entry_point="memrl.envs.lane_change:LaneChangeEnv",
+                 vector_entry_point="memrl.envs.vector:LaneChangeVectorEnv")
 
 
 register_envs()

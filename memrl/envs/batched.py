@@ -30,6 +30,8 @@ from memrl.envs.vehicles import ACTIONS, IDLE, N_ACTIONS
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
+INFO_KEYS = ("collided", "on_target_lane", "reached_target")
+"""Per-step flags of the agent (the reference env's ``info`` keys of the same names)."""
 
 
 class BatchedEnvError(ValueError):
@@ -148,7 +150,7 @@ class BatchedLaneChange:
         self._diag = float(np.sqrt(cfg.vehicle_length ** 2 + cfg.vehicle_width ** 2))
         signs = torch.tensor([[-1, -1], [-1, 1], [1, 1], [1, -1]], **f64)
         self._local = signs * self._half  # [4, 2] body corners in the car's frame [m]
-        self._slot = torch.arange(c, device=dev)
+        self._active: torch.Tensor | None = None
 
     # ---------------------------------------------------------------------------- reset
     def reset(self, env_ids: Sequence[int] | torch.Tensor | None = None,
@@ -198,9 +200,15 @@ class BatchedLaneChange:
         self._car_fresh[idx] = True
 
     # ----------------------------------------------------------------------------- step
-    def step(self, actions: Any) -> StepOut:
-        """One action step of every env (call :meth:`reset` on finished ones before the next)."""
+    def step(self, actions: Any, active: torch.Tensor | None = None) -> StepOut:
+        """One action step of every env (call :meth:`reset` on finished ones before the next).
+
+        ``active`` (bool ``[N]``, default all): envs whose outcome counts; the others are about
+        to be reset, and their learned cars draw no exploration from the env's generator (as a
+        reference env that is reset instead of stepped).
+        """
         a = check_actions(actions, self.num_envs, self.device)
+        self._active = active
         car_actions = torch.full(self.present.shape, IDLE, dtype=torch.long, device=self.device)
         car_actions[:, 0] = a
         self._apply(car_actions[:, :1], slice(0, 1))  # the agent acts first, then the other cars
@@ -222,6 +230,16 @@ class BatchedLaneChange:
             reward = reward + weight * comps[:, i].to(torch.float64)
         return StepOut(reward, comps, self.crashed.clone(), self.steps >= self.cfg.duration,
                        self.crashed.clone(), on_target, self.reached.clone())
+
+    def info(self) -> dict[str, torch.Tensor]:
+        """The reference env's ``info`` of the current state, per env: speed [m/s], curvature
+        [rad/m], lane, target_lane, rewards (``[N, 5]`` components), collided, on_target_lane,
+        reached_target."""
+        comps, on_target = self._components()
+        agent = self.state[:, 0]
+        return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE], "lane": self._lane().long(),
+                "target_lane": self.target_lane, "rewards": comps, "collided": self.crashed.clone(),
+                "on_target_lane": on_target, "reached_target": self.reached.clone()}
 
     def observation(self) -> torch.Tensor:
         """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor)."""
@@ -295,11 +313,15 @@ class BatchedLaneChange:
         hit = (gap <= 0).all(-1) & close & self.present[:, 1:]
         return hit.any(-1)
 
+    def _lane(self) -> torch.Tensor:
+        """Lane holding the agent's centre (clipped to the road), as float64."""
+        w = self.cfg.lane_width
+        return torch.clamp(torch.floor(self.state[:, 0, Y] / w + 0.5), 0, self.cfg.lanes_count - 1)
+
     def _components(self) -> tuple[torch.Tensor, torch.Tensor]:
         cfg, agent = self.cfg, self.state[:, 0]
-        w = cfg.lane_width
-        lane = torch.clamp(torch.floor(agent[:, Y] / w + 0.5), 0, cfg.lanes_count - 1)
-        offset = agent[:, Y] - lane * w
+        lane = self._lane()
+        offset = agent[:, Y] - lane * cfg.lane_width
         on_target = lane.long() == self.target_lane
         comps = torch.stack([self.crashed, offset.abs() <= cfg.lane_centre_tolerance,
                              agent[:, SPEED] <= cfg.stopped_speed, on_target, ~on_target], dim=-1)
@@ -343,7 +365,10 @@ class BatchedLaneChange:
         if eps > 0:  # per env, from the env's generator, in slot order, as the reference does
             chosen_np = chosen.cpu().numpy()
             envs = env_i.cpu().numpy()
+            active = None if self._active is None else self._active.cpu().numpy()
             for e in np.unique(envs):
+                if active is not None and not active[e]:
+                    continue
                 rows = np.flatnonzero(envs == e)
                 rng = self.rngs[int(e)]
                 explore = rng.random(len(rows)) < eps  # type: ignore[union-attr]

@@ -20,11 +20,10 @@ from torchrl.envs import (
 from torchrl.envs.libs.gym import GymEnv, default_info_dict_reader
 
 from memrl.envs import ENV_ID, register_envs
+from memrl.envs.batched import INFO_KEYS
 from memrl.envs.config import validate_env_config
 from memrl.envs.lane_change import LaneChangeEnv
 
-INFO_KEYS = ("collided", "on_target_lane", "reached_target")
-"""Per-step flags copied from the gym ``info`` dict into the tensordict."""
 
 
 def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]:
@@ -51,6 +50,8 @@ def make_env(
     frame_stack: int = 4,
     seed: int | None = None,
     render_mode: str | None = None,
+    num_envs: int | None = None,
+    device: Any = "cpu",
 ) -> TransformedEnv:
     """Build the lane-change env for TorchRL.
 
@@ -63,9 +64,23 @@ def make_env(
         frame_stack: number of frames concatenated along the channel dimension.
         seed: seed of the first reset (None: unseeded).
         render_mode: ``'rgb_array'`` to allow full-scene pictures via ``env.render()``.
+        num_envs: None: one highway-env env (the reference); N: the batched engine with batch
+            size ``[N]`` (:class:`~memrl.envs.torchrl_batched.BatchedLaneChangeEnv`), every key
+            with a leading env dimension; env i's first reset takes ``seed + i``.
+        device: the batched engine's device (``auto``, ``cpu``, ``cuda``, ``cuda:K``).
     """
     register_envs()
     values = env_kwargs(env_cfg)
+    if num_envs is not None:
+        if render_mode is not None:
+            raise ValueError("render_mode: full-scene pictures come from the single env (num_envs=None)")
+        from memrl.envs.torchrl_batched import BatchedLaneChangeEnv
+
+        batched = TransformedEnv(BatchedLaneChangeEnv(values, num_envs, device, frame_stack),
+                                 Compose(StepCounter(), RewardSum()))
+        if seed is not None:
+            batched.set_seed(seed)
+        return batched
     base = GymEnv(ENV_ID, config=values, render_mode=render_mode, device="cpu",
                   categorical_action_encoding=True)
     spec = Composite({k: Unbounded(shape=(), dtype=torch.bool) for k in INFO_KEYS})
