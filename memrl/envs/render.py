@@ -244,6 +244,8 @@ class BEVRenderer:
         (later cars over earlier ones), looking only at a window around each car."""
         v = self.view
         spare = flat.numel() - 1
+        if car_label.numel() == 0:
+            return
         rel = (cars[..., :2] - center[:, None, :]).to(torch.float32)  # [V, C, 2] car centre from view centre [m]
         heading = cars[..., 2]
         cos, sin = torch.cos(heading).to(torch.float32), torch.sin(heading).to(torch.float32)

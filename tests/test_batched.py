@@ -1,0 +1,268 @@
+"""The batched engine is the reference env's task: same scenes, steps, frames, resets; its
+gymnasium and TorchRL faces; bad input; and the frame change of the shared rasterizer."""
+
+from __future__ import annotations
+
+import cv2
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from memrl.checkpoint import save_qnet
+from memrl.envs import ENV_ID
+from memrl.envs.batched import BatchedEnvError, BatchedLaneChange, resolve_device
+from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.render import LABEL, PALETTE, gray_palette
+from memrl.envs.scene import sample_scene
+from memrl.envs.torchrl_env import make_env
+from memrl.modules.qnet import QNetwork
+from memrl.modules.scripted import ScriptedDriver
+from tests.batched_helpers import car_states, compare, random_actions
+
+NON_GOAL = {"initial_lane": "non_goal", "vehicles_count": [0, 5]}
+
+
+@pytest.mark.parametrize("config", [{}, NON_GOAL, {"target_lane": 1, "lanes_count": 3, "vehicles_count": 4},
+                                    {"initial_offset": 0.5, "initial_heading": 0.1, "initial_curvature": 0.02}])
+def test_env_i_reset_with_seed_s_starts_from_the_gym_scene_of_seed_s(config):
+    seeds = list(range(100, 132))
+    engine = BatchedLaneChange(config, len(seeds))
+    engine.reset(seeds=seeds)
+    for i, seed in enumerate(seeds):
+        env = gym.make(ENV_ID, config=config).unwrapped
+        env.reset(seed=seed)
+        assert int(engine.target_lane[i]) == env.target_lane
+        present = engine.present[i].numpy()
+        assert present.sum() == 1 + len(env.others) and present[: present.sum()].all()
+        assert np.array_equal(engine.state[i][engine.present[i]].numpy(), car_states(env))  # exact copies
+        assert bool(engine.reached[i]) == env.reached_target
+
+
+def test_random_actions_match_the_reference_step_for_step_with_collisions_walls_and_resets():
+    """32 seeds x 300 steps of uniform random actions: crashes into cars and the road edges."""
+    tally = compare(NON_GOAL, list(range(32)), 300, random_actions(1.0))
+    assert tally.steps == 32 * 300
+    assert tally.wall_hits > 0 and tally.collisions > tally.wall_hits  # both kinds of crash happened
+    assert tally.resets > 32  # every env went through several auto-resets
+
+
+def test_steady_driving_matches_the_reference_through_truncations():
+    """16 seeds x 310 steps of 'keep speed and curvature' among 5 cars: rear-end crashes, and
+    episodes that last the full 300 steps and are truncated, then reset."""
+    tally = compare({}, list(range(32, 48)), 310, random_actions(0.0))
+    assert tally.truncations > 0 and tally.collisions > 0
+
+
+def test_scripted_driver_actions_match_the_reference():
+    """The scripted driver changes lanes among 0-5 cars: 32 seeds x 300 steps."""
+    drivers: dict[int, ScriptedDriver] = {}
+
+    def act(envs, rng):
+        out = []
+        for i, env in enumerate(envs):
+            if env.steps == 0:  # a new episode: a fresh driver
+                drivers[i] = ScriptedDriver(merge_window=12.0)
+                drivers[i].reset(env)
+            out.append(drivers[i].act(env, None))
+        return np.array(out)
+
+    tally = compare(NON_GOAL, list(range(200, 232)), 300, act)
+    assert tally.reached > 20  # lane changes happened
+
+
+def test_path_cue_and_off_nominal_starts_match_the_reference():
+    config = {"bev": {"path_length": 20.0}, "initial_offset": 0.5, "initial_heading": 0.1,
+              "initial_curvature": 0.02}
+    compare(config, list(range(8)), 150, random_actions(0.3))
+
+
+@pytest.fixture(scope="module")
+def pool(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pool")
+    paths = []
+    for seed in (1, 2):
+        torch.manual_seed(seed)
+        net = QNetwork()
+        with torch.no_grad():  # spread the Q-values: no near-ties that batch order could flip
+            net.head[-1].weight.mul_(100.0)
+        paths.append(str(save_qnet(root / f"agent{seed}" / "final.pt", net, {})))
+    return paths
+
+
+@pytest.mark.parametrize("kind", ["learned", "mixed"])
+def test_learned_cars_act_as_the_reference_controller_does(pool, kind):
+    config = {"opponent": {"type": kind, "pool": pool, "epsilon": 0.1}, "vehicles_count": 4}
+    tally = compare(config, list(range(4)), 60, random_actions(0.3))
+    assert tally.steps == 4 * 60
+
+
+def test_learned_cars_of_all_envs_share_one_forward_pass_per_step(pool):
+    engine = BatchedLaneChange({"opponent": {"type": "learned", "pool": pool}, "vehicles_count": 3}, 8)
+    engine.reset(seeds=list(range(8)))
+    calls = engine.learned.forward_calls
+    for _ in range(5):
+        engine.step(torch.full((8,), 4))
+    assert engine.learned.forward_calls - calls == 5
+    assert int(engine.is_learned.sum()) == 8 * 3
+
+
+def test_gymnasium_make_vec_equals_sync_vector_env_over_reference_envs():
+    n, config = 6, NON_GOAL
+    ref = gym.vector.SyncVectorEnv([lambda: LaneChangeEnv(config=config) for _ in range(n)])
+    vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", config=config)
+    assert vec.single_observation_space == ref.single_observation_space
+    assert vec.observation_space == ref.observation_space and vec.action_space == ref.action_space
+    o1, _ = ref.reset(seed=7)
+    o2, _ = vec.reset(seed=7)
+    assert np.array_equal(o1, o2)
+    rng = np.random.default_rng(0)
+    finished = 0
+    for _ in range(250):
+        actions = vec.action_space.sample() if rng.random() < 0.5 else rng.integers(9, size=n)
+        a, b = ref.step(actions), vec.step(actions)
+        assert b[0] in vec.observation_space
+        for x, y in zip(a[:4], b[:4], strict=True):
+            assert np.array_equal(x, y)
+        for key in ("collided", "on_target_lane", "reached_target", "lane", "target_lane", "speed", "curvature"):
+            assert np.array_equal(a[4][key].astype(b[4][key].dtype), b[4][key]), key
+            assert b[4][f"_{key}"].all()
+        for key, value in a[4]["rewards"].items():
+            assert np.array_equal(value, b[4]["rewards"][key]), key
+        finished += int((a[2] | a[3]).sum())
+    assert finished > n  # next-step autoresets happened
+
+
+def test_gymnasium_reset_mask_resets_only_those_envs():
+    vec = gym.make_vec(ENV_ID, num_envs=3, vectorization_mode="vector_entry_point")
+    vec.reset(seed=0)
+    for _ in range(5):
+        vec.step(np.full(3, 8))
+    before = vec.unwrapped.engine.steps.clone()
+    vec.reset(seed=[None, 11, None], options={"reset_mask": np.array([False, True, False])})
+    assert vec.unwrapped.engine.steps.tolist() == [before[0].item(), 0, before[2].item()]
+    env = gym.make(ENV_ID).unwrapped
+    env.reset(seed=11)
+    assert np.array_equal(vec.unwrapped.engine.state[1][vec.unwrapped.engine.present[1]].numpy(), car_states(env))
+
+
+def test_torchrl_batched_env_passes_check_env_specs_and_resets_done_envs():
+    env = make_env(NON_GOAL, num_envs=5, seed=3)
+    check_env_specs(env)
+    env.set_seed(3)
+    td = env.rollout(120, break_when_any_done=False)
+    assert td["pixels"].shape == (5, 120, 4, 84, 84) and td["pixels"].dtype == torch.uint8
+    for key in ("collided", "on_target_lane", "reached_target"):
+        assert td["next", key].shape == (5, 120) and td["next", key].dtype == torch.bool
+    done = td["next", "done"].squeeze(-1)
+    assert done.any()  # random actions crash: these envs were reset mid-rollout
+    e, t = torch.nonzero(done)[0].tolist()
+    assert td["step_count"][e, t + 1].item() == 0 and td["episode_reward"][e, t + 1].item() == 0
+    # the first reset of env i is the scene of seed 3 + i: its first frame is that env's
+    ref = gym.make(ENV_ID, config=NON_GOAL).unwrapped
+    obs, _ = ref.reset(seed=3 + 2)
+    assert np.array_equal(td["pixels"][2, 0, -1].numpy(), obs[0])
+    assert (td["pixels"][2, 0] == td["pixels"][2, 0, :1]).all()  # CatFrames-style padding at reset
+
+
+@pytest.mark.parametrize(("action", "match"), [
+    ([0, 9], "action 9 is outside the valid range 0..8"),
+    ([-1, 2], "action -1 is outside"),
+    ([0.0, 1.0], "must be integers in 0..8"),
+    ([True, False], "must be integers"),
+    ([1, 2, 3], r"must have shape \(2,\)"),
+    (3, r"must have shape \(2,\)"),
+])
+def test_bad_action_batches_get_one_clear_error(action, match):
+    engine = BatchedLaneChange({}, 2)
+    engine.reset(seeds=[0, 1])
+    with pytest.raises(BatchedEnvError, match=match):
+        engine.step(action)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"num_envs": 0}, "num_envs must be an int >= 1"),
+    ({"num_envs": 2.5}, "num_envs must be an int >= 1"),
+    ({"device": "tpu"}, "expected auto, cpu, cuda or cuda:K|not a torch device"),
+    ({"device": "banana"}, "not a torch device"),
+    ({"config": {"bev": {"grayscale": False}}}, "grayscale"),
+])
+def test_bad_engine_arguments_get_one_clear_error(kwargs, match):
+    with pytest.raises(BatchedEnvError, match=match):
+        BatchedLaneChange(**{"num_envs": 1, **kwargs})
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
+def test_cuda_without_cuda_is_refused_with_a_clear_message():
+    with pytest.raises(BatchedEnvError, match="CUDA is not available"):
+        resolve_device("cuda")
+    assert resolve_device("auto") == torch.device("cpu")
+
+
+def _cv2_cars(img: np.ndarray, env: LaneChangeEnv) -> None:
+    """Today's frames before the shared rasterizer: cars filled by OpenCV (for comparison)."""
+    bev, g = env.bev, gray_palette(PALETTE)
+    for car in env.road.vehicles:
+        poly = bev.to_pixels(env.vehicle.position, bev.car_corners([car]))[0]
+        inward = 0.5 * np.sign(poly - poly.mean(axis=0))
+        pts = np.round((poly - 0.5 - inward) * 16).astype(np.int32)
+        kind = "agent" if car is env.vehicle else car.kind
+        cv2.fillConvexPoly(img, pts, g[kind], lineType=cv2.LINE_8, shift=4)
+
+
+def test_shared_rasterizer_changes_todays_frames_only_on_car_outlines():
+    """The reference env now draws with the batched renderer (pixel-centre coverage) instead
+    of OpenCV's polygon fill: road and markings are unchanged; cars differ from the OpenCV
+    drawing only in pixels on their outlines."""
+    g = gray_palette(PALETTE)
+    car_levels = [g["constant"], g["agent"]]
+    env = LaneChangeEnv(config={"vehicles_count": 5})
+    changed = total = 0
+    rng = np.random.default_rng(0)
+    for seed in range(12):
+        env.reset(seed=seed)
+        for _ in range(40):
+            obs = env.step(int(rng.integers(9)) if rng.random() < 0.3 else 4)[0][0]
+            if env.vehicle.crashed:
+                break
+            # the road alone, as drawn now, then the cars as OpenCV filled them before
+            old = env.bev.render(env.vehicle.position, [], env.target_lane)
+            background = ~np.isin(obs, car_levels)
+            _cv2_cars(old, env)
+            diff = old != obs
+            car_now, car_before = ~background, np.isin(old, car_levels)
+            # every changed pixel borders a pixel of another shade in one of the drawings (an
+            # outline; a car that only grazes a pixel centre at the picture's edge shows in one)
+            def outline(img):
+                padded = np.pad(img, 1, mode="edge")
+                return np.any([padded[1 + dr: 85 + dr, 1 + dc: 85 + dc] != img
+                               for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1))], axis=0)
+
+            on_outline = outline(old) | outline(obs)
+            assert (on_outline[diff]).all()
+            assert diff.sum() <= 0.5 * max(car_now.sum(), car_before.sum()) + 1
+            changed += int(diff.sum())
+            total += int(car_before.sum())
+    assert 0 < changed < 0.3 * total  # it did change, and only at the edges
+
+
+def test_agent_views_and_learned_car_views_use_the_palette_labels():
+    engine = BatchedLaneChange({"vehicles_count": 0}, 1)
+    engine.reset(seeds=[0])
+    frame = engine.newest_frame()[0]
+    levels = set(frame.unique().tolist())
+    g = gray_palette(PALETTE)
+    assert g["agent"] in levels and g["constant"] not in levels
+    assert LABEL["agent"] == list(PALETTE).index("agent")
+
+
+def test_scene_sampler_is_the_reference_envs_draw():
+    """The gym env's reset draws from sample_scene: same generator state, same scene."""
+    env = gym.make(ENV_ID, config=NON_GOAL).unwrapped
+    env.reset(seed=5)
+    from gymnasium.utils.seeding import np_random
+
+    scene = sample_scene(env.cfg, np_random(5)[0])
+    assert np.array_equal(np.vstack([scene.agent, scene.others]), car_states(env))
+    assert scene.target_lane == env.target_lane
