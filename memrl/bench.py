@@ -31,6 +31,12 @@ def _opponents(cfg: DictConfig) -> dict[str, Any]:
     return env_speed.run_opponents(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
 
 
+def _batched(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import batched_speed
+
+    return batched_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
 def _learner(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import learner_speed
 
@@ -62,7 +68,7 @@ BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "s
                                                                  "opponents": _opponents,
                                                                  "learner": _learner,
                                                                  "memory": _memory,
-                                                                 "e2e": _e2e}
+                                                                 "e2e": _e2e, "batched": _batched}
 
 
 def machine() -> dict[str, Any]:

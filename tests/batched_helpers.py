@@ -50,7 +50,8 @@ def compare(config: dict, seeds: list[int], steps: int,
     rng = np.random.default_rng(seeds[0])
     tally = Tally()
     for env_i, env in enumerate(refs):
-        assert np.array_equal(engine.newest_frame()[env_i].cpu().numpy(), env.observe_from(env.vehicle, env.target_lane)[0])
+        first = env.observe_from(env.vehicle, env.target_lane)[0]
+        assert np.array_equal(engine.newest_frame()[env_i].cpu().numpy(), first)
     for _ in range(steps):
         actions = act(refs, rng)
         tally.actions.append(actions)
@@ -89,7 +90,8 @@ def compare(config: dict, seeds: list[int], steps: int,
             tally.resets += len(done)
             frames = engine.newest_frame().cpu().numpy()
             for i in done:
-                assert np.array_equal(frames[i], refs[i].observe_from(refs[i].vehicle, refs[i].target_lane)[0])
+                first = refs[i].observe_from(refs[i].vehicle, refs[i].target_lane)[0]
+                assert np.array_equal(frames[i], first)
     return tally
 
 

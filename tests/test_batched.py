@@ -24,8 +24,11 @@ from tests.batched_helpers import car_states, compare, random_actions
 NON_GOAL = {"initial_lane": "non_goal", "vehicles_count": [0, 5]}
 
 
+OFF_NOMINAL = {"initial_offset": 0.5, "initial_heading": 0.1, "initial_curvature": 0.02}
+
+
 @pytest.mark.parametrize("config", [{}, NON_GOAL, {"target_lane": 1, "lanes_count": 3, "vehicles_count": 4},
-                                    {"initial_offset": 0.5, "initial_heading": 0.1, "initial_curvature": 0.02}])
+                                    OFF_NOMINAL])
 def test_env_i_reset_with_seed_s_starts_from_the_gym_scene_of_seed_s(config):
     seeds = list(range(100, 132))
     engine = BatchedLaneChange(config, len(seeds))
@@ -125,7 +128,8 @@ def test_gymnasium_make_vec_equals_sync_vector_env_over_reference_envs():
         assert b[0] in vec.observation_space
         for x, y in zip(a[:4], b[:4], strict=True):
             assert np.array_equal(x, y)
-        for key in ("collided", "on_target_lane", "reached_target", "lane", "target_lane", "speed", "curvature"):
+        for key in ("collided", "on_target_lane", "reached_target", "lane", "target_lane", "speed",
+                    "curvature"):
             assert np.array_equal(a[4][key].astype(b[4][key].dtype), b[4][key]), key
             assert b[4][f"_{key}"].all()
         for key, value in a[4]["rewards"].items():
@@ -144,7 +148,8 @@ def test_gymnasium_reset_mask_resets_only_those_envs():
     assert vec.unwrapped.engine.steps.tolist() == [before[0].item(), 0, before[2].item()]
     env = gym.make(ENV_ID).unwrapped
     env.reset(seed=11)
-    assert np.array_equal(vec.unwrapped.engine.state[1][vec.unwrapped.engine.present[1]].numpy(), car_states(env))
+    engine = vec.unwrapped.engine
+    assert np.array_equal(engine.state[1][engine.present[1]].numpy(), car_states(env))
 
 
 def test_torchrl_batched_env_passes_check_env_specs_and_resets_done_envs():

@@ -48,7 +48,8 @@ def resolve_device(device: torch.device | str | None) -> torch.device:
         raise BatchedEnvError(f"device {device!r} is not a torch device (auto, cpu, cuda or cuda:K)") from err
     if dev.type == "cuda":
         if not torch.cuda.is_available():
-            raise BatchedEnvError(f"device {device!r}: CUDA is not available on this machine (use device=cpu)")
+            raise BatchedEnvError(f"device {device!r}: CUDA is not available on this machine "
+                                  "(use device=cpu)")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise BatchedEnvError(f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s) here")
     elif dev.type != "cpu":
@@ -137,12 +138,15 @@ class BatchedLaneChange:
             View(b.width, b.height, b.lateral_scale, b.longitudinal_scale), cfg.lanes_count,
             cfg.lane_width, (cfg.vehicle_length, cfg.vehicle_width), show_target_lane=b.show_target_lane,
             dash_length=b.dash_length, path_length=b.path_length, channels=1, device=dev)
-        self._frames = torch.zeros(n, frame_stack, b.height, b.width, dtype=torch.uint8, device=dev)
+        # frame ring [S, N, H, W] in one flat buffer with a spare last byte (the renderer's)
+        self._ring = torch.zeros(frame_stack * n * b.height * b.width + 1, dtype=torch.uint8, device=dev)
+        self._frames = self._ring[:-1].view(frame_stack, n, b.height, b.width)
         self._head = 0  # slot of the newest frame in the ring
         self._car_frames: torch.Tensor | None = None
         self._car_fresh = torch.zeros(n, c, dtype=torch.bool, device=dev)
         if self.learned is not None:
-            self._car_frames = torch.zeros(n, c, frame_stack, b.height, b.width, dtype=torch.uint8, device=dev)
+            self._car_frames = torch.zeros(n, c, frame_stack, b.height, b.width, dtype=torch.uint8,
+                                           device=dev)
         self._ds = torch.tensor([a[0] for a in ACTIONS], **f64) * cfg.speed_step
         self._dk = torch.tensor([a[1] for a in ACTIONS], **f64) * cfg.curvature_step
         self._weights = [float(getattr(cfg.reward, k)) for k in REWARD_NAMES]
@@ -196,7 +200,7 @@ class BatchedLaneChange:
         self.crashed[idx] = False
         lo, hi = self._lateral_extent(self.state[idx, 0])
         self.reached[idx] = self._inside_target(lo, hi, self.target_lane[idx])
-        self._frames[idx] = self._render_agents(idx)[:, None]
+        self._frames[:, idx] = self._render_agents(idx)[None]
         self._car_fresh[idx] = True
 
     # ----------------------------------------------------------------------------- step
@@ -223,7 +227,7 @@ class BatchedLaneChange:
         self.crashed |= (lo < -0.5 * w) | (hi > (self.cfg.lanes_count - 0.5) * w)
         self.reached |= self._inside_target(lo, hi, self.target_lane)
         self._head = (self._head + 1) % self.frame_stack
-        self._frames[:, self._head] = self._render_agents(None)
+        self._render_agents(None, into=self._head)
         comps, on_target = self._components()
         reward = torch.zeros(self.num_envs, dtype=torch.float64, device=self.device)
         for i, weight in enumerate(self._weights):  # the reference's order of summation
@@ -243,12 +247,12 @@ class BatchedLaneChange:
 
     def observation(self) -> torch.Tensor:
         """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor)."""
-        order = (torch.arange(1, self.frame_stack + 1, device=self.device) + self._head) % self.frame_stack
-        return self._frames.index_select(1, order)
+        order = [(self._head + k) % self.frame_stack for k in range(1, self.frame_stack + 1)]
+        return torch.stack([self._frames[k] for k in order], dim=1)
 
     def newest_frame(self) -> torch.Tensor:
         """The last frame of every env ``[N, H, W]`` (a view of the ring)."""
-        return self._frames[:, self._head]
+        return self._frames[self._head]
 
     def _apply(self, actions: torch.Tensor, slots: slice) -> None:
         """Add the speed and curvature changes of the actions to the cars of ``slots``, clamp, round."""
@@ -300,18 +304,29 @@ class BatchedLaneChange:
         if others.shape[1] == 0:
             return torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         close = torch.linalg.vector_norm(others[..., :2] - agent[..., :2], dim=-1) <= self._diag
-        a = self._corners(agent).expand(-1, others.shape[1], -1, -1)  # [N, K, 4, 2]
-        b = self._corners(others)
-        edges = torch.cat([a.roll(-1, dims=2) - a, b.roll(-1, dims=2) - b], dim=2)  # [N, K, 8, 2]
-        normal = torch.stack([-edges[..., 1], edges[..., 0]], dim=-1)
-        normal = normal / torch.sqrt(normal[..., 0] ** 2 + normal[..., 1] ** 2)[..., None]
-        nx, ny = normal[..., 0, None], normal[..., 1, None]  # [N, K, 8, 1]
-        pa = a[:, :, None, :, 0] * nx + a[:, :, None, :, 1] * ny  # [N, K, 8 axes, 4 corners]
-        pb = b[:, :, None, :, 0] * nx + b[:, :, None, :, 1] * ny
-        min_a, max_a, min_b, max_b = pa.min(-1).values, pa.max(-1).values, pb.min(-1).values, pb.max(-1).values
-        gap = torch.where(min_a < min_b, min_b - max_a, min_a - max_b)
-        hit = (gap <= 0).all(-1) & close & self.present[:, 1:]
+        close &= self.present[:, 1:]
+        hit = torch.zeros_like(close)
+        if self.device.type == "cpu":  # the separating-axis test on the close pairs only
+            env_i, car_i = torch.nonzero(close, as_tuple=True)
+            hit[env_i, car_i] = self._overlap(agent[env_i, 0], others[env_i, car_i])
+        else:  # every pair: fixed shapes, no host sync
+            hit = close & self._overlap(agent.expand_as(others), others)
         return hit.any(-1)
+
+    def _overlap(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        """Whether car bodies ``[..., 5]`` overlap: highway-env's ``are_polygons_intersecting``
+        at zero velocity (the 4 edge normals of each body; touching counts)."""
+        a, b = self._corners(first), self._corners(second)  # [..., 4, 2]
+        edges = torch.cat([a.roll(-1, dims=-2) - a, b.roll(-1, dims=-2) - b], dim=-2)  # [..., 8, 2]
+        nx, ny = -edges[..., 1], edges[..., 0]
+        norm = torch.sqrt(nx * nx + ny * ny)
+        nx, ny = (nx / norm)[..., None], (ny / norm)[..., None]  # [..., 8 axes, 1]
+        pa = a[..., None, :, 0] * nx + a[..., None, :, 1] * ny  # [..., 8 axes, 4 corners]
+        pb = b[..., None, :, 0] * nx + b[..., None, :, 1] * ny
+        min_a, max_a = pa.min(-1).values, pa.max(-1).values
+        min_b, max_b = pb.min(-1).values, pb.max(-1).values
+        gap = torch.where(min_a < min_b, min_b - max_a, min_a - max_b)
+        return (gap <= 0).all(-1)
 
     def _lane(self) -> torch.Tensor:
         """Lane holding the agent's centre (clipped to the road), as float64."""
@@ -328,8 +343,9 @@ class BatchedLaneChange:
         return comps, on_target
 
     # --------------------------------------------------------------------------- frames
-    def _render_agents(self, idx: torch.Tensor | None) -> torch.Tensor:
-        """The agent's view of envs ``idx`` (None: all) ``[V, H, W]``."""
+    def _render_agents(self, idx: torch.Tensor | None, into: int | None = None) -> torch.Tensor:
+        """The agent's view of envs ``idx`` (None: all) ``[V, H, W]``; ``into``: draw all envs'
+        views straight into that slot of the frame ring."""
         state = self.state if idx is None else self.state[idx]
         present = self.present if idx is None else self.present[idx]
         target = self.target_lane if idx is None else self.target_lane[idx]
@@ -338,6 +354,10 @@ class BatchedLaneChange:
         labels[:, 0] = LABEL["agent"]
         labels = torch.where(present, labels, -1)
         path = state[:, 0, [X, Y, HEADING, CURVATURE]]
+        if into is not None:
+            self.renderer.render_into(self._ring, into * self._frames[0].numel(), state[:, 0, :2], target,
+                                      state[..., :3], labels, path)
+            return self._frames[into]
         return self.renderer.render_batch(state[:, 0, :2], target, state[..., :3], labels, path)
 
     def _learned_actions(self) -> torch.Tensor:

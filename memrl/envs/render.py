@@ -129,7 +129,8 @@ class BEVRenderer:
         else:
             gray = gray_palette(dict(zip(LABELS, shades, strict=True)))
             self.table = torch.tensor([gray[n] for n in LABELS], dtype=torch.uint8, device=self.device)
-        self.palette = {n: (tuple(shades[i]) if channels == 3 else int(self.table[i])) for i, n in enumerate(LABELS)}
+        self.palette = {n: (tuple(shades[i]) if channels == 3 else int(self.table[i]))
+                        for i, n in enumerate(LABELS)}
         f64 = dict(dtype=torch.float64, device=self.device)
         h, w = view.height, view.width
         half_diag = 0.5 * math.hypot(self.car_length, self.car_width)
@@ -138,7 +139,6 @@ class BEVRenderer:
         self._win_cols = math.ceil(2 * half_diag / view.lateral_scale) + 3
         f32 = dict(dtype=torch.float32, device=self.device)
         self._win_i = torch.arange(self._win_rows, **f32)[:, None]
-        self._win_j = torch.arange(self._win_cols, **f32)[None, :]
         self._cols_j = torch.arange(w, device=self.device)
         self._rows_h = torch.arange(h, device=self.device)[None, :]
         self._dividers = torch.tensor((np.arange(1, lanes_count) - 0.5) * lane_width, **f64)
@@ -171,26 +171,34 @@ class BEVRenderer:
                 is drawn when ``path_length > 0`` (None: no path).
         """
         v = self.view
+        flat = torch.empty(len(center) * v.height * v.width + 1, dtype=torch.uint8, device=self.device)
+        self.render_into(flat, 0, center, target_lane, cars, car_label, path)
+        img = flat[:-1].view(len(center), v.height, v.width)
+        return img if self.channels == 1 else self.table[img.long()]
+
+    def render_into(self, flat: torch.Tensor, start: int, center: torch.Tensor, target_lane: torch.Tensor,
+                    cars: torch.Tensor, car_label: torch.Tensor, path: torch.Tensor | None = None) -> None:
+        """Draw the ``V`` pictures (labels when RGB) into ``flat[start : start + V * H * W]`` of a
+        1-D uint8 buffer whose last element is spare (it takes the writes that fall outside a
+        picture); arguments as :meth:`render_batch`."""
+        v = self.view
         n_views, size = len(center), v.height * v.width
         # Gray: paint the shades themselves; RGB: paint labels, then look their colours up.
         values = self.table if self.channels == 1 else self._label_ids
-        # all pictures in one flat buffer, plus a spare last element that takes off-picture writes
-        flat = torch.empty(n_views * size + 1, dtype=torch.uint8, device=self.device)
-        base = torch.arange(n_views, device=self.device) * size  # [V] offset of each picture
-        self._background(center, target_lane, values, flat, base)
+        base = start + torch.arange(n_views, device=self.device) * size  # [V] offset of each picture
+        self._background(center, target_lane, values, flat, base, start)
         self._paint_cars(flat, base, center, cars, car_label, values)
         if path is not None and self.path_length > 0:
             pts = arc_points(path, self._path_s)  # [V, S, 2]
-            col = torch.floor(0.5 * v.width + (pts[..., 1] - center[:, None, 1]) / v.lateral_scale).long()
-            row = torch.floor(0.5 * v.height - (pts[..., 0] - center[:, None, 0]) / v.longitudinal_scale).long()
+            rel = pts - center[:, None, :]
+            col = torch.floor(0.5 * v.width + rel[..., 1] / v.lateral_scale).long()
+            row = torch.floor(0.5 * v.height - rel[..., 0] / v.longitudinal_scale).long()
             ok = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width)
-            index = torch.where(ok, base[:, None] + row * v.width + col, n_views * size)
+            index = torch.where(ok, base[:, None] + row * v.width + col, flat.numel() - 1)
             flat.scatter_(0, index.reshape(-1), values[LABEL["agent"]].expand(index.numel()))
-        img = flat[:-1].view(n_views, v.height, v.width)
-        return img if self.channels == 1 else self.table[img.long()]
 
     def _background(self, center: torch.Tensor, target_lane: torch.Tensor, values: torch.Tensor,
-                    flat: torch.Tensor, base: torch.Tensor) -> None:
+                    flat: torch.Tensor, base: torch.Tensor, start: int) -> None:
         """Road, target lane and markings into the pictures: a shade per column, copied down
         every row, then the dashes of the lane dividers."""
         v, w, n = self.view, self.lane_width, self.lanes_count
@@ -213,7 +221,8 @@ class BEVRenderer:
         line = max(v.lateral_scale, 0.15)  # markings: at least 1 px, at most 0.15 m wide
         col = torch.where(band(left, left + line) | band(right - line, right), values[LABEL["marking"]], col)
         n_views = len(center)
-        flat[:-1].view(n_views, v.height, v.width).copy_(col[:, None, :].expand(-1, v.height, -1))
+        pictures = flat[start: start + n_views * v.height * v.width].view(n_views, v.height, v.width)
+        pictures.copy_(col[:, None, :].expand(-1, v.height, -1))
         if n < 2:
             return
         # dash k covers [s_k, s_k + L] along the road, s_k = first + k * period: rows [r0, r1)
@@ -221,8 +230,9 @@ class BEVRenderer:
         x_top = center[:, 0:1] + 0.5 * v.height * v.longitudinal_scale
         first = torch.floor((x_top - 2 * self._half_span) / period) * period - period
         starts = first + self._dash_k * period  # [V, K]
-        r0 = torch.ceil(0.5 * v.height - (starts + self.dash_length - center[:, 0:1]) / v.longitudinal_scale - 0.5)
-        r1 = torch.ceil(0.5 * v.height - (starts - center[:, 0:1]) / v.longitudinal_scale - 0.5)
+        cx, lon = center[:, 0:1], v.longitudinal_scale
+        r0 = torch.ceil(0.5 * v.height - (starts + self.dash_length - cx) / lon - 0.5)
+        r1 = torch.ceil(0.5 * v.height - (starts - cx) / lon - 0.5)
         # +1 where a dash starts, -1 where it ends, summed down the picture
         count = torch.zeros(n_views, v.height + 1, dtype=r0.dtype, device=self.device)
         count.scatter_add_(1, r0.clamp(0, v.height).long(), torch.ones_like(r0))
@@ -241,36 +251,49 @@ class BEVRenderer:
     def _paint_cars(self, flat: torch.Tensor, base: torch.Tensor, center: torch.Tensor, cars: torch.Tensor,
                     car_label: torch.Tensor, values: torch.Tensor) -> None:
         """Paint each car over the pixels whose centres its body covers, slot after slot
-        (later cars over earlier ones), looking only at a window around each car."""
+        (later cars over earlier ones): per picture row, the run of columns inside the body."""
         v = self.view
-        spare = flat.numel() - 1
         if car_label.numel() == 0:
             return
-        rel = (cars[..., :2] - center[:, None, :]).to(torch.float32)  # [V, C, 2] car centre from view centre [m]
+        rel = (cars[..., :2] - center[:, None, :]).to(torch.float32)  # [V, C, 2] car from view centre [m]
         heading = cars[..., 2]
         cos, sin = torch.cos(heading).to(torch.float32), torch.sin(heading).to(torch.float32)
-        # half extents of the car's bounding box along the road (rows) and across it (cols) [px]
-        half_x = (0.5 * self.car_length * cos.abs() + 0.5 * self.car_width * sin.abs()) / v.longitudinal_scale
-        half_y = (0.5 * self.car_length * sin.abs() + 0.5 * self.car_width * cos.abs()) / v.lateral_scale
+        half_len, half_wid = 0.5 * self.car_length, 0.5 * self.car_width
+        # rows whose centres lie within the body's extent along the road
+        half_x = half_len * cos.abs() + half_wid * sin.abs()  # [m]
         row_c = 0.5 * v.height - rel[..., 0] / v.longitudinal_scale  # car centre [continuous px]
-        col_c = 0.5 * v.width + rel[..., 1] / v.lateral_scale
-        row0, col0 = torch.floor(row_c - half_x - 1), torch.floor(col_c - half_y - 1)  # window corner
-        if self.device.type == "cpu":  # the smallest window holding every box (one read per call)
-            n_rows = int((torch.ceil(row_c + half_x + 1) - row0).max().clamp(min=1))
-            n_cols = int((torch.ceil(col_c + half_y + 1) - col0).max().clamp(min=1))
-        else:  # fixed shapes on accelerators: no host sync, same pixels
-            n_rows, n_cols = self._win_rows, self._win_cols
-        row = row0[..., None, None] + self._win_i[:n_rows]  # [V, C, R, 1]
-        col = col0[..., None, None] + self._win_j[:, :n_cols]  # [V, C, 1, Q]
-        dx = (0.5 * v.height - 0.5 - row) * v.longitudinal_scale - rel[..., 0, None, None]  # pixel centre - car [m]
-        dy = (col + 0.5 - 0.5 * v.width) * v.lateral_scale - rel[..., 1, None, None]
-        cos, sin = cos[..., None, None], sin[..., None, None]
-        covered = ((dx * cos + dy * sin).abs() <= 0.5 * self.car_length) & \
-                  ((dy * cos - dx * sin).abs() <= 0.5 * self.car_width)
-        row_ok = (row >= 0) & (row < v.height) & (car_label >= 0)[..., None, None]
-        col_ok = (col >= 0) & (col < v.width)
-        pixel = (row * v.width + col).long() + base[:, None, None, None]
-        index = torch.where(covered & (row_ok & col_ok), pixel, spare)  # [V, C, R, Q]
+        first = torch.ceil(row_c - half_x / v.longitudinal_scale - 0.5)
+        last = torch.floor(row_c + half_x / v.longitudinal_scale - 0.5)
+        n_rows = int((last - first).max()) + 1 if self.device.type == "cpu" else self._win_rows
+        row = first[..., None] + self._win_i[:n_rows, 0]  # [V, C, R]
+        dx = (0.5 * v.height - 0.5 - row) * v.longitudinal_scale - rel[..., 0, None]  # row centre - car [m]
+        c, s = cos[..., None], sin[..., None]
+        # |dx c + dy s| <= L/2 and |dy c - dx s| <= W/2, solved for dy on each row
+        inf = torch.tensor(float("inf"), device=self.device)
+        s_safe, c_safe = torch.where(s == 0, 1.0, s), torch.where(c == 0, 1.0, c)
+        a0, a1 = (-half_len - dx * c) / s_safe, (half_len - dx * c) / s_safe
+        a_lo, a_hi = torch.minimum(a0, a1), torch.maximum(a0, a1)
+        a_ok = (dx * c).abs() <= half_len
+        a_lo = torch.where(s == 0, torch.where(a_ok, -inf, inf), a_lo)
+        a_hi = torch.where(s == 0, torch.where(a_ok, inf, -inf), a_hi)
+        b0, b1 = (-half_wid + dx * s) / c_safe, (half_wid + dx * s) / c_safe
+        b_lo, b_hi = torch.minimum(b0, b1), torch.maximum(b0, b1)
+        b_ok = (dx * s).abs() <= half_wid
+        b_lo = torch.where(c == 0, torch.where(b_ok, -inf, inf), b_lo)
+        b_hi = torch.where(c == 0, torch.where(b_ok, inf, -inf), b_hi)
+        lo, hi = torch.maximum(a_lo, b_lo), torch.minimum(a_hi, b_hi)  # dy range [m]
+        # columns whose centres lie in [lo, hi] across the road, clipped to the picture
+        col0 = 0.5 * v.width - 0.5 + rel[..., 1, None] / v.lateral_scale
+        j0 = torch.ceil(col0 + lo / v.lateral_scale).clamp(min=0)
+        j1 = torch.floor(col0 + hi / v.lateral_scale).clamp(max=v.width - 1)
+        valid = (row <= last[..., None]) & (row >= 0) & (row < v.height) & (car_label >= 0)[..., None]
+        run = torch.where(valid, j1 - j0, -1.0).long()  # [V, C, R] columns after the first (-1: none)
+        n_cols = int(run.max()) + 1 if self.device.type == "cpu" else self._win_cols
+        if n_cols <= 0:
+            return
+        start = base[:, None, None] + (row.long() * v.width + j0.long()).clamp(min=0)  # [V, C, R]
+        q = self._cols_j[:n_cols]
+        index = torch.where(q <= run[..., None], start[..., None] + q, flat.numel() - 1)  # [V, C, R, Q]
         shade = values[car_label.clamp(min=0)]  # [V, C]
         size = n_rows * n_cols
         for slot in range(car_label.shape[1]):  # in draw order; one car covers a pixel once
@@ -299,7 +322,8 @@ class BEVRenderer:
             ``(H, W, 3)`` uint8 RGB picture, or ``(H, W)`` grayscale when ``channels == 1``.
         """
         f64 = dict(dtype=torch.float64, device=self.device)
-        cars = torch.tensor([[c.position[0], c.position[1], c.heading] for c in vehicles], **f64).view(1, -1, 3)
+        rows = [[c.position[0], c.position[1], c.heading] for c in vehicles]
+        cars = torch.tensor(rows, **f64).view(1, -1, 3)
         kinds = [("agent" if c is ego else ("learned" if c.kind == "agent" else c.kind)) for c in vehicles]
         labels = torch.tensor([[LABEL[k] for k in kinds]], dtype=torch.long, device=self.device).view(1, -1)
         path = None

@@ -39,7 +39,8 @@ class BatchedLaneChangeEnv(EnvBase):
         n, b = engine.num_envs, engine.cfg.bev
         flags = {k: Unbounded(shape=(n,), dtype=torch.bool, device=self.device) for k in INFO_KEYS}
         self.observation_spec = Composite(
-            pixels=Bounded(0, 255, (n, frame_stack, b.height, b.width), dtype=torch.uint8, device=self.device),
+            pixels=Bounded(0, 255, (n, frame_stack, b.height, b.width), dtype=torch.uint8,
+                           device=self.device),
             **flags, shape=(n,), device=self.device)
         self.action_spec = Categorical(N_ACTIONS, shape=(n,), dtype=torch.int64, device=self.device)
         self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=self.device)
@@ -62,12 +63,10 @@ class BatchedLaneChangeEnv(EnvBase):
         self._seeds = None
         self.engine.reset(ids, seeds)
         info = self.engine.info()
-        return TensorDict({"pixels": self.engine.observation(),
-                           **{k: info[k] for k in INFO_KEYS},
-                           "done": torch.zeros(self.batch_size + (1,), dtype=torch.bool, device=self.device),
-                           "terminated": torch.zeros(self.batch_size + (1,), dtype=torch.bool, device=self.device),
-                           "truncated": torch.zeros(self.batch_size + (1,), dtype=torch.bool, device=self.device),
-                           }, batch_size=self.batch_size, device=self.device)
+        flags = {k: torch.zeros(self.batch_size + (1,), dtype=torch.bool, device=self.device)
+                 for k in ("done", "terminated", "truncated")}
+        return TensorDict({"pixels": self.engine.observation(), **{k: info[k] for k in INFO_KEYS}, **flags},
+                          batch_size=self.batch_size, device=self.device)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         out = self.engine.step(tensordict.get("action"))

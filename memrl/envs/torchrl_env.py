@@ -25,7 +25,6 @@ from memrl.envs.config import validate_env_config
 from memrl.envs.lane_change import LaneChangeEnv
 
 
-
 def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]:
     """Plain, checked env config dict from a Hydra node or mapping (None: defaults)."""
     if env_cfg is None:

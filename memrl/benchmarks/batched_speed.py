@@ -1,0 +1,104 @@
+"""Env steps/s of the batched engine at several N, beside the reference gym env and
+highway-env's ``highway-fast-v0`` (gray 84x84x4), measured in the same run.
+
+Every env runs uniformly random actions from a seeded generator and resets finished
+episodes; the batched engine renders every frame (the agent's, and each learned car's own
+view) into its frame ring. Rates are env steps per second of wall time.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from memrl.benchmarks.env_speed import _time_gym, highway_fast_config
+
+
+def _time_batched(config: dict[str, Any], n: int, seconds: float, device: torch.device, seed: int) -> float:
+    """Env steps/s of the batched engine with N envs, random actions, finished envs reset."""
+    from memrl.envs.batched import BatchedLaneChange
+
+    engine = BatchedLaneChange(config, n, device)
+    engine.reset(seeds=[seed + i for i in range(n)])
+    gen = torch.Generator(device=device).manual_seed(seed)
+
+    def step() -> None:
+        out = engine.step(torch.randint(0, 9, (n,), generator=gen, device=device))
+        done = torch.nonzero(out.terminated | out.truncated).flatten()
+        if len(done):
+            engine.reset(done)
+
+    for _ in range(3):  # warm-up: allocations, caches
+        step()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    steps, start = 0, time.perf_counter()
+    while True:
+        step()
+        steps += 1
+        if steps % 5 == 0:
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            if time.perf_counter() - start >= seconds:
+                break
+    return n * steps / (time.perf_counter() - start)
+
+
+def _reference(config: dict[str, Any], steps: int, seed: int) -> float:
+    """The reference gym env, giving 4 stacked frames as the batched engine keeps them."""
+    from memrl.envs import ENV_ID, register_envs
+
+    register_envs()
+    env = gym.wrappers.FrameStackObservation(
+        gym.wrappers.ReshapeObservation(gym.make(ENV_ID, config=config), (84, 84)), 4)
+    rate, _ = _time_gym(env, steps, seed)
+    env.close()
+    return rate
+
+
+def run(sizes: list[int], gpu_sizes: list[int], seconds: float = 3.0, reference_steps: int = 1000,
+        vehicles_count: int = 5, learned: bool = True, learned_sizes: list[int] | None = None,
+        threads: int = 1, device: str = "auto", seed: int = 0) -> dict[str, Any]:
+    """Steps/s of each layer; ratios of the batched engine to the reference gym env."""
+    from memrl.envs.batched import resolve_device
+
+    torch.set_num_threads(threads)
+    dev = resolve_device(device)
+    os.environ["SDL_VIDEODRIVER"] = "offscreen"  # 'dummy' makes highway-env skip drawing
+    import highway_env  # noqa: F401  (registers highway-fast-v0)
+
+    res: dict[str, Any] = {"device": str(dev), "device_name": torch.cuda.get_device_name(dev)
+                           if dev.type == "cuda" else "cpu", "torch_threads": torch.get_num_threads(),
+                           "vehicles_count": vehicles_count, "seconds_per_size": seconds}
+    constant = {"vehicles_count": vehicles_count}
+    hw = gym.make("highway-fast-v0", config=highway_fast_config(vehicles_count))
+    res["highway_fast_gym_steps_per_s"], _ = _time_gym(hw, reference_steps, seed)
+    hw.close()
+    ref = _reference(constant, reference_steps, seed)
+    res["reference_gym_steps_per_s"] = ref
+    all_sizes = list(sizes) + (list(gpu_sizes) if dev.type == "cuda" else [])
+    res["constant"] = {str(n): _time_batched(constant, n, seconds, dev, seed) for n in all_sizes}
+    res["constant_ratio_to_reference"] = {n: r / ref for n, r in res["constant"].items()}
+    if learned:
+        from memrl.checkpoint import save_qnet
+        from memrl.modules.qnet import QNetwork
+
+        with tempfile.TemporaryDirectory() as tmp:
+            torch.manual_seed(seed)
+            pool = str(save_qnet(f"{tmp}/final.pt", QNetwork(), {}))
+            cars = {**constant, "opponent": {"type": "learned", "pool": [pool]}}
+            ref_learned = _reference(cars, max(100, reference_steps // 5), seed)
+            res["reference_learned_gym_steps_per_s"] = ref_learned
+            res["learned"] = {str(n): _time_batched(cars, n, seconds, dev, seed)
+                              for n in (learned_sizes or sizes)}
+            res["learned_ratio_to_reference"] = {n: r / ref_learned for n, r in res["learned"].items()}
+    res["note"] = ("GPU rows (gpu_sizes) only on a CUDA device; none measured here" if dev.type != "cuda"
+                   else "GPU rows measured on this device")
+    res["numpy"] = np.__version__
+    return res
