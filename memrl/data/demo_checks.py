@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -56,33 +57,40 @@ def _first_bad(bad: torch.Tensor) -> int:
     return int(bad.reshape(len(bad), -1).any(1).nonzero()[0])
 
 
-def check_values(td: TensorDictBase, root: Path) -> None:
+def check_values(td: TensorDictBase, root: Path | Callable[[str], str]) -> None:
     """Actions in ``0..N_ACTIONS-1``, flags 0 or 1 (every row a demo, ``done`` = terminated or
-    truncated), rewards finite; ``td`` is the per-transition part mapped from ``root``."""
+    truncated), rewards finite.
+
+    Args:
+        td: per-transition tensors (``action``, ``is_demo``, ``next/*``).
+        root: the tensordict memmap folder they were mapped from (messages name its files),
+            or a function giving the name to show for a key.
+    """
+    where = (lambda name: str(tensor_file(root, name))) if isinstance(root, Path) else root
     action = td.get("action")
     bad = (action < 0) | (action >= N_ACTIONS)
     if bad.any():
         i = _first_bad(bad)
-        raise DemoDatasetError(f"{tensor_file(root, 'action')}: action {int(action[i])} at transition "
+        raise DemoDatasetError(f"{where('action')}: action {int(action[i])} at transition "
                                f"{i} is outside 0..{N_ACTIONS - 1}")
     flags = {}
     for name in FLAG_KEYS:
         raw = td.get(tuple(name.split("/"))).view(torch.uint8)  # a bool file may hold any byte
         if (raw > 1).any():
             i = _first_bad(raw > 1)
-            raise DemoDatasetError(f"{tensor_file(root, name)}: byte {int(raw[i].max())} at transition "
+            raise DemoDatasetError(f"{where(name)}: byte {int(raw[i].max())} at transition "
                                    f"{i} is not a boolean (0 or 1)")
         flags[name] = raw.bool()
     if not bool(flags["is_demo"].all()):
-        raise DemoDatasetError(f"{tensor_file(root, 'is_demo')}: some transitions are not flagged as demos")
+        raise DemoDatasetError(f"{where('is_demo')}: some transitions are not flagged as demos")
     mismatch = flags["next/done"] != (flags["next/terminated"] | flags["next/truncated"])
     if mismatch.any():
-        raise DemoDatasetError(f"{tensor_file(root, 'next/done')}: done differs from terminated or "
+        raise DemoDatasetError(f"{where('next/done')}: done differs from terminated or "
                                f"truncated at transition {_first_bad(mismatch)}")
     reward = td.get(("next", "reward"))
     if not bool(torch.isfinite(reward).all()):
         i = _first_bad(~torch.isfinite(reward))
-        raise DemoDatasetError(f"{tensor_file(root, 'next/reward')}: reward {float(reward[i].max())} at "
+        raise DemoDatasetError(f"{where('next/reward')}: reward {float(reward[i].max())} at "
                                f"transition {i} is not finite")
 
 
