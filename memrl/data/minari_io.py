@@ -79,6 +79,10 @@ def export_minari(path: str | os.PathLike, dataset_id: str, *, env_cfg: EnvCfg =
             actions=part.get("action").numpy(), rewards=part.get(("next", "reward")).reshape(-1).numpy(),
             terminations=flags["terminated"], truncations=flags["truncated"]))
     shape = tuple(td.get("pixels").shape[1:])
+    if description is None:
+        description = (f"memrl prior knowledge ({meta.get('source', 'demos')}) for the lane-change task: "
+                       f"observations are {shape[0]} stacked {shape[1]}x{shape[2]} grayscale BEV frames, "
+                       f"actions the 9 (speed change x curvature change) indices")
     dataset = minari.create_dataset_from_buffers(
         dataset_id, buffers, observation_space=spaces.Box(0, 255, shape, np.uint8),
         action_space=spaces.Discrete(N_ACTIONS), algorithm_name=f"memrl {meta.get('source', 'demos')}",
