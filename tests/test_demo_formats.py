@@ -231,3 +231,17 @@ def test_minari_import_refuses_what_memrl_cannot_use(both, monkeypatch, tmp_path
     with pytest.raises(DemoDatasetError, match=r"observation space .* expected uint8 \(4, 84, 84\)"):
         import_minari("other/one-frame-v0", tmp_path / "b", env_cfg=SHORT)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize("fmt", ["v1", "v2"])
+def test_training_refuses_a_bad_dataset_before_any_update(plain, tmp_path, compose_cfg, fmt):
+    """Issue 18's case: an action of 99 stops mode A/B where the demos are loaded, naming the file."""
+    from memrl.train import prior_knowledge
+
+    copy = Path(shutil.copytree(plain[fmt], tmp_path / fmt))
+    poke(copy, "action", "int64", 11, 99)
+    cfg = compose_cfg("train", ["+mode=B", f"mode.demos_path={copy}", "env.duration=40",
+                                "env.vehicles_count=[0,5]"])
+    with pytest.raises(DemoDatasetError, match="action 99 at transition 11") as err:
+        prior_knowledge(cfg)
+    assert str(copy / "transitions" / "action.memmap") in str(err.value)
