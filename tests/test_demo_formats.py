@@ -88,6 +88,16 @@ def test_replay_buffers_hold_the_same_demos_from_either_format(both):
     assert_same(stored[0], new[:40])
 
 
+def test_a_format_1_dataset_upgrades_with_the_readme_line(both, tmp_path):
+    v1, v2, _ = both
+    new = save_demos(load_demos(v1), tmp_path / "upgraded", read_metadata(v1))
+    assert_same(load_demos(new), load_demos(v1))
+    old_meta, meta = read_metadata(v1), read_metadata(new)
+    assert meta["format_version"] == 2 and meta["counts"] == read_metadata(v2)["counts"]
+    assert {k: v for k, v in meta.items() if k not in ("format_version", "counts")} == \
+        {k: v for k, v in old_meta.items() if k not in ("format_version", "counts")}
+
+
 # ---------------------------------------------------------------------------- bad values
 def poke(path: Path, name: str, dtype: str, row: int, value) -> None:
     """Write ``value`` into row ``row`` of a tensor file of the dataset, in place."""
