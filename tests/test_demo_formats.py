@@ -288,3 +288,20 @@ def test_training_refuses_a_bad_dataset_before_any_update(plain, tmp_path, compo
     with pytest.raises(DemoDatasetError, match="action 99 at transition 11") as err:
         prior_knowledge(cfg)
     assert str(copy / "transitions" / "action.memmap") in str(err.value)
+
+
+def test_minari_command_exports_imports_and_refuses_in_one_line(both, monkeypatch, tmp_path, capsys):
+    pytest.importorskip("minari")
+    from memrl.data.minari_io import main
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    _, v2, original = both
+    assert main(["export", str(v2), "memrl/lane-change/cli-v0"]) == 0
+    assert main(["import", "memrl/lane-change/cli-v0", str(tmp_path / "back")]) == 0
+    assert_same(load_demos(tmp_path / "back"), original)
+    capsys.readouterr()
+    for argv, named in ((["import", "memrl/lane-change/cli-v0", str(tmp_path / "back")], tmp_path / "back"),
+                        (["export", str(tmp_path / "none"), "memrl/lane-change/x-v0"], tmp_path / "none")):
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"error: {named}:")

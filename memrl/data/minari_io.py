@@ -9,13 +9,21 @@ Minari episode per run. memrl's metadata (env config, source, stats, ...) travel
 metadata under :data:`METADATA_KEY`, so :func:`import_minari` gives back the same transitions and
 the same env-config hash. Minari keeps datasets under ``$MINARI_DATASETS_PATH`` (default
 ``~/.minari/datasets``).
+
+From the shell::
+
+    python -m memrl.data.minari_io export <memrl dataset folder> <minari id>
+    python -m memrl.data.minari_io import <minari id> <memrl dataset folder> [--overwrite]
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
-from collections.abc import Mapping
+import sys
+import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -162,3 +170,37 @@ def import_minari(dataset: str | Any, path: str | os.PathLike, *, env_cfg: EnvCf
         return save_demos(chunks, path, meta, overwrite=overwrite)
     except ValueError as e:  # e.g. observations that are not shifted frame stacks
         raise DemoDatasetError(f"{where}: {e}") from None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``export``/``import`` from the shell; a bad dataset or a missing extra is one line on
+    stderr and exit status 1."""
+    parser = argparse.ArgumentParser(prog="python -m memrl.data.minari_io",
+                                     description="Minari export/import of memrl demo datasets")
+    sub = parser.add_subparsers(dest="command", required=True)
+    exp = sub.add_parser("export", help="memrl dataset -> Minari dataset (HDF5)")
+    exp.add_argument("dataset", help="memrl dataset folder")
+    exp.add_argument("dataset_id", help="Minari id, e.g. memrl/lane-change/scripted-v0")
+    imp = sub.add_parser("import", help="Minari dataset -> memrl dataset")
+    imp.add_argument("dataset_id", help="Minari id (in $MINARI_DATASETS_PATH)")
+    imp.add_argument("dataset", help="memrl dataset folder to write")
+    imp.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    args = parser.parse_args(argv)
+    # Minari's reminders to set author, e-mail, permalink, eval env: not errors, and not ours.
+    warnings.filterwarnings("ignore", category=UserWarning, module="minari")
+    try:
+        if args.command == "export":
+            out = export_minari(args.dataset, args.dataset_id)
+            print(f"exported {out.total_steps} steps in {out.total_episodes} episodes to Minari "
+                  f"dataset {args.dataset_id} ({out.storage.data_path})")
+        else:
+            path = import_minari(args.dataset_id, args.dataset, overwrite=args.overwrite)
+            print(f"imported Minari dataset {args.dataset_id} into {path}")
+    except (DemoDatasetError, ImportError, FileExistsError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
