@@ -1,4 +1,6 @@
-"""Demo datasets: exact round trip, atomic writes, every corruption case, storage, example, CLI."""
+"""Demo datasets: exact round trip, atomic writes, every corruption case, storage, example, CLI.
+
+Format 1 (earlier versions), bad values and Minari: ``tests/test_demo_formats.py``."""
 
 from __future__ import annotations
 
@@ -6,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -35,7 +38,8 @@ from memrl.modules.scripted import ScriptedDriver
 from memrl.record import record
 
 SHORT = {"duration": 40, "vehicles_count": [0, 5]}  # short episodes keep the files small
-BYTES_PER_TRANSITION = 2 * 4 * 84 * 84 + 8 + 1 + 4 + 3  # pixels, next pixels, action, flags
+BYTES_PER_TRANSITION = 5 * 8 + 8 + 1 + 4 + 3  # frame refs, action, is_demo, reward, 3 flags
+FRAMES = 2 * (40 + 1)  # two 40-step episodes: the reset frame, then one new frame per step
 
 
 def leaves(td: TensorDict) -> dict:
@@ -63,7 +67,7 @@ def test_layout_matches_the_shared_transition_keys():
     assert names == set(TRANSITION_KEYS)
 
 
-def test_round_trip_is_exact_and_memory_mapped(dataset):
+def test_round_trip_is_exact(dataset):
     path, original = dataset
     loaded = load_demos(path, env_cfg=SHORT)
     assert loaded.batch_size == original.batch_size == (80,)
@@ -71,11 +75,11 @@ def test_round_trip_is_exact_and_memory_mapped(dataset):
     assert a.keys() == b.keys()
     for key in a:
         assert a[key].dtype == b[key].dtype and torch.equal(a[key], b[key]), key
-    assert type(loaded["pixels"]).__name__ == "MemoryMappedTensor"
     assert loaded["is_demo"].all() and loaded["pixels"].dtype == torch.uint8
     meta = read_metadata(path)
-    assert meta["format_version"] == FORMAT_VERSION and meta["source"] == "scripted"
-    assert meta["counts"] == {"episodes": 2, "episodes_recorded": 2, "transitions": 80}
+    assert meta["format_version"] == FORMAT_VERSION == 2 and meta["source"] == "scripted"
+    assert meta["counts"] == {"episodes": 2, "episodes_recorded": 2, "transitions": 80,
+                              "frames": FRAMES}
     assert meta["env_config_hash"] == env_config_hash(SHORT) and meta["seed"] == 5
     assert meta["spec"]["pixels"] == {"shape": [4, 84, 84], "dtype": "uint8"}
     assert {"created", "stats", "episodes", "env_config"} <= meta.keys()
@@ -91,10 +95,14 @@ def test_recorded_pixels_are_exactly_what_the_env_gives(dataset):
     assert torch.equal(td["next", "pixels"][:39], td["pixels"][1:40])
 
 
-def test_size_on_disk_is_the_raw_transitions(dataset):
+def test_each_frame_is_stored_once(dataset):
     path, _ = dataset
-    size = dataset_bytes(path)
-    assert 80 * BYTES_PER_TRANSITION <= size <= 80 * BYTES_PER_TRANSITION + 20_000  # + JSON files
+    assert sorted(p.name for p in path.iterdir()) == ["frames.npz", "metadata.json", "transitions"]
+    with np.load(path / "frames.npz") as npz:
+        assert npz["pixels"].shape == (FRAMES, 84, 84) and npz["pixels"].dtype == np.uint8
+    rows = dataset_bytes(path / "transitions")
+    assert 80 * BYTES_PER_TRANSITION <= rows <= 80 * BYTES_PER_TRANSITION + 2_000  # + meta.json
+    assert (path / "frames.npz").stat().st_size < FRAMES * 84 * 84  # deflated
 
 
 def test_save_refuses_bad_layouts_and_existing_folders(dataset, tmp_path):
@@ -161,27 +169,33 @@ def _edit_json(file: Path, edit) -> None:
 
 
 CORRUPTIONS = {
-    "truncated file": (lambda p: open(p / "transitions/next/pixels.memmap", "r+b").truncate(1000),
-                       "transitions/next/pixels.memmap", "truncated"),
+    "truncated file": (lambda p: open(p / "transitions/next/reward.memmap", "r+b").truncate(100),
+                       "transitions/next/reward.memmap", "truncated"),
+    "truncated frames": (lambda p: open(p / "frames.npz", "r+b").truncate(1000),
+                         "frames.npz", "unreadable frames"),
+    "missing frames": (lambda p: (p / "frames.npz").unlink(), "frames.npz", "missing"),
     "missing tensor file": (lambda p: (p / "transitions/action.memmap").unlink(),
                             "transitions/action.memmap", "missing"),
     "altered shape": (lambda p: _edit_json(p / "transitions/meta.json",
-                                           lambda d: d["pixels"].update(shape=[80, 4, 84, 83])),
-                      "transitions/pixels.memmap", r"\[80, 4, 84, 83\]"),
+                                           lambda d: d["frame_refs"].update(shape=[80, 4])),
+                      "transitions/frame_refs.memmap", r"\[80, 4\]"),
     "wrong dtype": (lambda p: _edit_json(p / "transitions/meta.json",
                                          lambda d: d["action"].update(dtype="torch.int32")),
                     "transitions/action.memmap", "torch.int32"),
     "missing metadata": (lambda p: (p / "metadata.json").unlink(), "metadata.json", "missing"),
     "unreadable metadata": (lambda p: (p / "metadata.json").write_text("{not json"),
                             "metadata.json", "JSON"),
-    "format version": (lambda p: _edit_json(p / "metadata.json", lambda d: d.update(format_version=2)),
-                       "metadata.json", "format version 2"),
+    "format version": (lambda p: _edit_json(p / "metadata.json", lambda d: d.update(format_version=3)),
+                       "metadata.json", "format version 3"),
     "edited env config": (lambda p: _edit_json(p / "metadata.json",
                                                lambda d: d["env_config"].update(lane_width=3.5)),
                           "metadata.json", "does not match"),
     "wrong count": (lambda p: _edit_json(p / "metadata.json",
                                          lambda d: d["counts"].update(transitions=81)),
                     "transitions/", r"expected \[81"),
+    "wrong frame count": (lambda p: _edit_json(p / "metadata.json",
+                                               lambda d: d["counts"].update(frames=81)),
+                          "frames.npz", r"expected \[81, 84, 84\]"),
     "not a dataset": (lambda p: shutil.rmtree(p), "copy", "no dataset folder"),
 }
 

@@ -181,6 +181,7 @@ def test_fig7_strip_and_video_replay_the_evaluated_episodes(tmp_path, compose_cf
     img = cv2.imread(str(strip))
     assert img is not None and img.std() > 10 and img.shape[1] >= 4 * 120
     cap = cv2.VideoCapture(str(video))
+    assert int(cap.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little") in (b"avc1", b"h264")  # H.264
     frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     ok, first = cap.read()
     cap.release()

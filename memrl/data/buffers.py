@@ -43,8 +43,9 @@ def demo_buffer(demos: TensorDictBase, batch_size: int | None = None,
                 compact: bool = True) -> ReplayBuffer:
     """A buffer filled with ``demos`` (its capacity is their count: nothing else gets in).
 
-    Demo datasets keep their full-stack format on disk; a compact buffer converts them on
-    entry, with a ring of exactly the frames they need (they are written once).
+    Demos arrive as full stacks (:func:`memrl.data.demos.load_demos` rebuilds them from either
+    dataset format); a compact buffer converts them on entry, with a ring of exactly the frames
+    they need (they are written once).
     """
     storage: Storage = (FrameStackStorage(len(demos), frames=count_frames(demos)) if compact
                         else LazyTensorStorage(len(demos)))

@@ -1,14 +1,23 @@
-"""Prior-knowledge datasets: transitions stored exactly as the replay buffer holds them.
+"""Prior-knowledge datasets: each 84x84 frame stored once, transitions rebuilt on load.
 
-A dataset is a folder::
+A dataset (format version 2) is a folder::
 
     <name>/metadata.json   format version, env-config hash and config, layout, counts, stats, ...
-    <name>/transitions/    tensordict memmap: pixels, action, is_demo, next/{pixels, reward,
-                           done, terminated, truncated}; batch size [N]
+    <name>/frames.npz      pixels [F, H, W] uint8, every frame once (numpy, deflate-compressed)
+    <name>/transitions/    tensordict memmap: frame_refs [N, stack + 1] (indices into frames: the
+                           stack of ``pixels``, then the newest frame of ``next/pixels``), action,
+                           is_demo, next/{reward, done, terminated, truncated}; batch size [N]
+
+The refs are the replay's frame ring's (:func:`memrl.data.frame_store.plan_pushes`), with the
+ring as large as the dataset: an episode of T steps stores T + 1 frames, not 8 T, and the flat
+shades of the BEV deflate about 80x. Version 1
+(``transitions/`` holding both full stacks per transition, 8x the frames) still loads.
+:func:`load_demos` gives the same transitions from either version: ``pixels`` and
+``("next", "pixels")`` ``[stack, H, W]``, as the env pipeline and the replay buffers use them.
 
 :func:`save_demos` writes into a hidden temporary folder beside the target and renames it at
 the end (``metadata.json`` last), so an interrupted recording never leaves a folder that looks
-like a dataset. :func:`load_demos` checks everything before mapping the files and raises
+like a dataset. :func:`load_demos` checks files and values before use and raises
 :class:`DemoDatasetError` naming the file and the problem.
 """
 
@@ -18,7 +27,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import math
 import os
 import shutil
 import uuid
@@ -27,20 +35,33 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data.replay_buffers.storages import TensorStorage
 
+from memrl.data.demo_checks import (
+    DemoDatasetError,
+    check_files,
+    check_frame_refs,
+    check_values,
+    tensor_file,
+)
+from memrl.data.frame_store import REFS_KEY, plan_pushes
 from memrl.envs.config import LaneChangeConfig, validate_env_config
 from memrl.envs.torchrl_env import env_kwargs
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
-"""Version of the on-disk layout; bumped on any incompatible change."""
+FORMAT_VERSION = 2
+"""Version of the on-disk layout written; bumped on any incompatible change."""
+READABLE_VERSIONS = (1, 2)
+"""Versions :func:`load_demos` reads (1: full stacks per transition)."""
 METADATA_FILE = "metadata.json"
 TRANSITIONS_DIR = "transitions"
+FRAMES_FILE = "frames.npz"
+PIXELS = ("pixels", ("next", "pixels"))
 EPISODE_KEYS = (
     "target_lane", "initial_lane", "initial_speed", "initial_offset", "initial_heading",
     "initial_curvature", "vehicles_count", "other_speed",
@@ -53,10 +74,6 @@ who drives them) or only the picture for people, not what a transition means. De
 config is still stored in the metadata."""
 
 EnvCfg = Mapping[str, Any] | DictConfig | LaneChangeConfig | None
-
-
-class DemoDatasetError(ValueError):
-    """A demonstration dataset is missing, damaged, or made for another env or format."""
 
 
 # ----------------------------------------------------------------------------- layout
@@ -123,6 +140,15 @@ def transition_spec(env_cfg: EnvCfg, frame_stack: int = 4) -> dict[str, tuple[li
     }
 
 
+def stored_spec(spec: dict[str, tuple[list[int], str]]) -> dict[str, tuple[list[int], str]]:
+    """Per-transition files of format 2: :func:`transition_spec` with both stacks replaced by
+    ``frame_refs`` (``stack + 1`` indices into ``frames/``)."""
+    stack = spec["pixels"][0][0]
+    out = {k: v for k, v in spec.items() if k not in ("pixels", "next/pixels")}
+    out[REFS_KEY] = ([stack + 1], "int64")
+    return out
+
+
 def _key(name: str) -> tuple[str, ...]:
     return tuple(name.split("/"))
 
@@ -157,18 +183,48 @@ def _fsync_tree(folder: Path) -> None:
                 os.close(fd)
 
 
+def compact_frames(chunks: Sequence[TensorDictBase]) -> tuple[torch.Tensor, list[TensorDictBase]]:
+    """Every frame of the chunks once, and the chunks with their two stacks replaced by
+    ``frame_refs`` into those frames (the frame ring's plan, with a ring as large as the data).
+
+    Raises:
+        ValueError: where ``("next", "pixels")`` is not ``pixels`` shifted by one frame.
+    """
+    head, prev_refs, prev_stack = 0, None, None
+    frames: list[np.ndarray] = []
+    out: list[TensorDictBase] = []
+    for chunk in chunks:
+        p, q = chunk.get("pixels").numpy(), chunk.get(("next", "pixels")).numpy()
+        refs, pushes, prev_refs = plan_pushes(p, q, head, prev_refs, prev_stack)
+        ctr, rows, cols = (np.asarray(x) for x in zip(*pushes, strict=True))
+        assert ctr[0] == head and ctr[-1] == head + len(ctr) - 1  # pushes are consecutive
+        block = np.empty((len(ctr), *p.shape[2:]), dtype=p.dtype)
+        from_p = cols < p.shape[1]
+        block[from_p] = p[rows[from_p], cols[from_p]]
+        block[~from_p] = q[rows[~from_p], -1]
+        frames.append(block)
+        head, prev_stack = head + len(ctr), q[-1]
+        rest = chunk.exclude(*PIXELS)
+        rest.set(REFS_KEY, torch.tensor(refs, dtype=torch.long))
+        out.append(rest)
+    return torch.from_numpy(np.concatenate(frames)), out
+
+
 def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.PathLike,
                metadata: Mapping[str, Any], *, overwrite: bool = False) -> Path:
-    """Write transitions and ``metadata.json`` atomically (temporary folder, then rename).
+    """Write transitions (each frame once) and ``metadata.json`` atomically (temporary folder,
+    then rename).
 
     Args:
         td: transitions of batch size [N] in the layout of :func:`transition_spec`, or a
             sequence of such chunks (e.g. one per episode), written one after the other
-            without concatenating them in memory first.
+            without concatenating them in memory first. ``("next", "pixels")`` must be
+            ``pixels`` shifted by one frame (as ``CatFrames`` makes it).
         path: dataset folder to create.
         metadata: must hold ``env_config`` (the env config used); anything else (source,
             seed, stats, episode counts, ...) is stored as given. ``format_version``,
-            ``env_config_hash``, ``spec``, ``counts.transitions`` and ``created`` are filled in.
+            ``env_config_hash``, ``spec``, ``counts.transitions``, ``counts.frames`` and
+            ``created`` are filled in.
         overwrite: replace an existing dataset at ``path`` (it stays valid until the rename).
 
     Returns:
@@ -185,9 +241,11 @@ def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.Pat
     spec = transition_spec(env_config, frame_stack)
     for chunk in chunks:
         _check_layout(chunk, spec)
+    chunks = [c for c in chunks if c.shape[0]]
     total = sum(c.shape[0] for c in chunks)
     if total == 0:
         raise ValueError("save_demos: no transitions to save")
+    frames, stored = compact_frames(chunks)
     meta = dict(metadata)
     meta.update(
         format_version=FORMAT_VERSION,
@@ -195,15 +253,19 @@ def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.Pat
         env_config_hash=env_config_hash(env_config),
         frame_stack=frame_stack,
         spec={k: {"shape": s, "dtype": d} for k, (s, d) in spec.items()},
-        counts={**dict(metadata.get("counts", {})), "transitions": total},
+        counts={**dict(metadata.get("counts", {})), "transitions": total, "frames": len(frames)},
     )
     meta.setdefault("created", datetime.now(UTC).isoformat(timespec="seconds"))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:
-        out = chunks[0][0].expand(total).memmap_like(tmp / TRANSITIONS_DIR)
+        tmp.mkdir()
+        # numpy, not a tensordict memmap: memmaps cannot be compressed, and BEV frames (flat
+        # shades) deflate about 80x; format 2 is gathered into memory on load anyway.
+        np.savez_compressed(tmp / FRAMES_FILE, pixels=frames.numpy())
+        out = stored[0][0].expand(total).memmap_like(tmp / TRANSITIONS_DIR)
         start = 0
-        for chunk in chunks:
+        for chunk in stored:
             out[start:start + chunk.shape[0]] = chunk
             start += chunk.shape[0]
         del out  # unmap before the rename
@@ -218,7 +280,7 @@ def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.Pat
             tmp.rename(path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    log.info("saved %d transitions to %s", total, path)
+    log.info("saved %d transitions (%d frames) to %s", total, len(frames), path)
     return path
 
 
@@ -239,9 +301,9 @@ def read_metadata(path: str | os.PathLike) -> dict[str, Any]:
                if k not in meta]
     if missing:
         raise DemoDatasetError(f"{file}: missing field(s) {missing}")
-    if meta["format_version"] != FORMAT_VERSION:
+    if meta["format_version"] not in READABLE_VERSIONS:
         raise DemoDatasetError(f"{file}: format version {meta['format_version']!r}; this memrl "
-                               f"reads version {FORMAT_VERSION} (re-record the dataset)")
+                               f"reads versions {list(READABLE_VERSIONS)} (re-record the dataset)")
     return meta
 
 
@@ -264,40 +326,82 @@ def _check_env(file: Path, meta: dict[str, Any], env_cfg: EnvCfg) -> None:
             f"env {wanted[:12]}); differing keys: {details}")
 
 
-def _check_files(root: Path, spec: dict[str, tuple[list[int], str]], count: int) -> None:
-    """Every tensor file exists, is described with the expected shape and dtype, and is whole."""
-    # Hand-written: tensordict's load_memmap silently zero-extends a truncated file.
-    for name, (shape, dtype) in spec.items():
-        *parents, leaf = name.split("/")
-        folder = root.joinpath(*parents)
-        data, meta_file = folder / f"{leaf}.memmap", folder / "meta.json"
-        if not data.is_file():
-            raise DemoDatasetError(f"{data}: missing tensor file for '{name}'")
-        try:
-            described = json.loads(meta_file.read_text())[leaf]
-        except (OSError, ValueError, KeyError) as e:
-            raise DemoDatasetError(f"{meta_file}: no readable description of '{leaf}' ({e!r})") from None
-        expected = [count, *shape]
-        if described.get("shape") != expected or described.get("dtype") != f"torch.{dtype}":
-            raise DemoDatasetError(
-                f"{data}: stored as {described.get('shape')} {described.get('dtype')}, "
-                f"expected {expected} torch.{dtype}")
-        size = math.prod(expected) * torch.empty((), dtype=getattr(torch, dtype)).element_size()
-        if data.stat().st_size != size:
-            raise DemoDatasetError(f"{data}: {data.stat().st_size} bytes, expected {size} "
-                                   f"(truncated or overwritten file)")
+def _count(file: Path, meta: dict[str, Any], name: str) -> int:
+    count = meta["counts"].get(name)
+    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+        raise DemoDatasetError(f"{file}: 'counts.{name}' must be a positive int, got {count!r}")
+    return count
+
+
+def _map(root: Path, spec: dict[str, tuple[list[int], str]]) -> TensorDictBase:
+    """The tensordict memmap at ``root``, with the files' layout checked against ``spec``."""
+    try:
+        td = TensorDict.load_memmap(root)
+    except Exception as e:  # tensordict raises assorted types for damaged folders
+        raise DemoDatasetError(f"{root}: cannot be mapped ({e!r})") from None
+    try:
+        _check_layout(td, spec)
+    except ValueError as e:
+        raise DemoDatasetError(f"{root}: {e}") from None
+    return td
+
+
+def _read_frames(file: Path, shape: list[int], dtype: str) -> np.ndarray:
+    """The frames of ``frames.npz``, checked to be ``shape`` of ``dtype``."""
+    try:
+        with np.load(file, allow_pickle=False) as npz:
+            frames = npz["pixels"]
+    except FileNotFoundError:
+        raise DemoDatasetError(f"{file}: missing frames file") from None
+    except Exception as e:  # zipfile, zlib and numpy raise assorted types for damaged files
+        raise DemoDatasetError(f"{file}: unreadable frames ({e!r})") from None
+    if list(frames.shape) != shape or str(frames.dtype) != dtype:
+        raise DemoDatasetError(f"{file}: frames {list(frames.shape)} {frames.dtype}, "
+                               f"expected {shape} {dtype}")
+    return frames
+
+
+def _load_v1(path: Path, spec: dict[str, tuple[list[int], str]], count: int) -> TensorDictBase:
+    """Format 1: both stacks stored per transition; mapped as they are."""
+    root = path / TRANSITIONS_DIR
+    check_files(root, spec, count)
+    td = _map(root, spec)
+    check_values(td, root)
+    return td
+
+
+def _load_v2(path: Path, spec: dict[str, tuple[list[int], str]], count: int,
+             frames: int) -> TensorDictBase:
+    """Format 2: frames once plus refs; both stacks gathered into memory (numpy's gather)."""
+    root = path / TRANSITIONS_DIR
+    check_files(root, stored_spec(spec), count)
+    shape, dtype = spec["pixels"]
+    ring = _read_frames(path / FRAMES_FILE, [frames, *shape[1:]], dtype)
+    td = _map(root, stored_spec(spec))
+    check_values(td, root)
+    refs = td.get(REFS_KEY)
+    check_frame_refs(refs, frames, tensor_file(root, REFS_KEY))
+    stack, slots = spec["pixels"][0][0], refs.numpy()
+    out = td.exclude(REFS_KEY).to_tensordict()
+    out.set("pixels", torch.from_numpy(ring[slots[:, :stack]]))
+    out.set(("next", "pixels"), torch.from_numpy(ring[slots[:, 1:]]))
+    return out
 
 
 def load_demos(path: str | os.PathLike, env_cfg: EnvCfg = None) -> TensorDict:
-    """Map a dataset into memory after checking it.
+    """Load a dataset after checking it: files, layout and values (actions in range, boolean
+    flags, finite rewards, frame references inside the stored frames).
 
     Args:
-        path: dataset folder written by :func:`save_demos`.
+        path: dataset folder written by :func:`save_demos` (format 2, or format 1 of earlier
+            memrl versions).
         env_cfg: the env config the transitions will be used with; when given, its
             :func:`env_config_hash` must equal the dataset's.
 
     Returns:
-        Memory-mapped transitions, batch size [N]. Do not write into them: the files change.
+        Transitions of batch size [N] in the layout of :func:`transition_spec`, the same from
+        either format. Format 2 is rebuilt in memory; format 1 is memory-mapped (do not write
+        into it: the files change).
 
     Raises:
         DemoDatasetError: naming the file and the problem.
@@ -307,25 +411,13 @@ def load_demos(path: str | os.PathLike, env_cfg: EnvCfg = None) -> TensorDict:
     file = path / METADATA_FILE
     _check_env(file, meta, env_cfg)
     spec = transition_spec(meta["env_config"], int(meta.get("frame_stack", 4)))
-    stored_spec = {k: (v.get("shape"), v.get("dtype")) for k, v in meta["spec"].items()}
-    if stored_spec != spec:
-        raise DemoDatasetError(f"{file}: 'spec' {stored_spec} does not match the layout {spec}")
-    count = meta["counts"].get("transitions")
-    if not isinstance(count, int) or count < 1:
-        raise DemoDatasetError(f"{file}: 'counts.transitions' must be a positive int, got {count!r}")
-    root = path / TRANSITIONS_DIR
-    _check_files(root, spec, count)
-    try:
-        td = TensorDict.load_memmap(root)
-    except Exception as e:  # tensordict raises assorted types for damaged folders
-        raise DemoDatasetError(f"{root}: cannot be mapped ({e!r})") from None
-    try:
-        _check_layout(td, spec)
-    except ValueError as e:
-        raise DemoDatasetError(f"{root}: {e}") from None
-    if not bool(td["is_demo"].all()):
-        raise DemoDatasetError(f"{root / 'is_demo.memmap'}: some transitions are not flagged as demos")
-    return td  # type: ignore[return-value]
+    stored = {k: (v.get("shape"), v.get("dtype")) for k, v in meta["spec"].items()}
+    if stored != spec:
+        raise DemoDatasetError(f"{file}: 'spec' {stored} does not match the layout {spec}")
+    count = _count(file, meta, "transitions")
+    if meta["format_version"] == 1:
+        return _load_v1(path, spec, count)  # type: ignore[return-value]
+    return _load_v2(path, spec, count, _count(file, meta, "frames"))  # type: ignore[return-value]
 
 
 def dataset_bytes(path: str | os.PathLike) -> int:

@@ -162,20 +162,33 @@ def video_frame(c: Capture, k: int, view_scale: int = 4) -> np.ndarray:
     return frame
 
 
+def write_rgb_video(frames: Sequence[np.ndarray], path: Path, fps: float = 10.0) -> Path:
+    """H.264 MP4 (``yuv420p``, index at the front) of RGB frames of one even size: the codec
+    browsers, GitHub and notebooks play."""
+    # imageio-ffmpeg: a static ffmpeg with libx264 from pip; OpenCV's wheels write only mp4v.
+    import imageio_ffmpeg
+
+    h, w = frames[0].shape[:2]
+    if h % 2 or w % 2:
+        raise ValueError(f"H.264 (yuv420p) needs even frame sizes, got {w}x{h}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    writer = imageio_ffmpeg.write_frames(
+        str(path), (w, h), fps=fps, codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
+        quality=None, macro_block_size=2, output_params=["-crf", "20", "-movflags", "+faststart"])
+    try:
+        writer.send(None)  # start ffmpeg
+        for f in frames:
+            writer.send(np.ascontiguousarray(f, dtype=np.uint8))
+    except (OSError, RuntimeError) as e:
+        raise OSError(f"could not write the video {path} ({e})") from None
+    finally:
+        writer.close()
+    return path
+
+
 def write_video(captures: Sequence[Capture], path: Path, fps: float = 10.0, hold: int = 10) -> Path:
-    """MP4 (OpenCV, ``mp4v``) of whole episodes one after another; the last picture of each
-    is held for ``hold`` frames."""
+    """H.264 MP4 (:func:`write_rgb_video`) of whole episodes one after another; the last
+    picture of each is held for ``hold`` frames."""
     frames = [video_frame(c, k) for c in captures for k in
               [*range(len(c.scenes)), *([len(c.scenes) - 1] * hold)]]
-    h, w = frames[0].shape[:2]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fourcc = cv2.VideoWriter_fourcc(*"mp4v")  # type: ignore[attr-defined]
-    writer = cv2.VideoWriter(str(path), fourcc, fps, (w, h))
-    if not writer.isOpened():
-        raise OSError(f"OpenCV could not open an MP4 writer for {path}")
-    try:
-        for f in frames:
-            writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
-    finally:
-        writer.release()
-    return path
+    return write_rgb_video(frames, path, fps)
