@@ -120,6 +120,8 @@ class BatchedLaneChange:
         self.device = resolve_device(device)
         self.opponents = opponents or make_opponents(cfg.opponent)
         self.learned = next((c for c in self.opponents.controllers if c.kind == "learned"), None)
+        if self.learned is not None and self.learned.device != self.device:  # type: ignore[attr-defined]
+            self.learned.to(self.device)  # type: ignore[attr-defined]
         n, c, dev = self.num_envs, 1 + max_cars(cfg), self.device
         f64 = dict(dtype=torch.float64, device=dev)
         self.state = torch.zeros(n, c, 5, **f64)
@@ -379,8 +381,8 @@ class BatchedLaneChange:
                              torch.cat([stacks[:, 1:], frames[:, None]], dim=1))
         self._car_frames[env_i, slot_i] = stacks
         self._car_fresh[env_i, slot_i] = False
-        q = self.learned.q_values(self.policy[env_i, slot_i].cpu(), stacks.to("cpu"))  # type: ignore[attr-defined]
-        chosen = q.argmax(-1).to(self.device)
+        q = self.learned.q_values(self.policy[env_i, slot_i], stacks)  # type: ignore[attr-defined]
+        chosen = q.argmax(-1)
         eps = float(getattr(self.learned, "epsilon", 0.0))
         if eps > 0:  # per env, from the env's generator, in slot order, as the reference does
             chosen_np = chosen.cpu().numpy()

@@ -80,6 +80,15 @@ class LearnedCarController(CarController):
         self._buffers = buffers
         self._skeleton = copy.deepcopy(self.networks[0]).to("meta")
 
+    def to(self, device: torch.device | str) -> LearnedCarController:
+        """Move the pool's networks to ``device`` (the batched engine's); returns self."""
+        self._set_networks([n.to(device) for n in self.networks])
+        return self
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.networks[0].parameters()).device
+
     def add_network(self, net: QNetwork) -> None:
         """Add a snapshot (e.g. of the agent being trained) to the pool; used from the next
         episode on."""
@@ -97,7 +106,7 @@ class LearnedCarController(CarController):
             return functional_call(self._skeleton, (params, buffers), (x,))
 
         every = torch.vmap(run, in_dims=(0, 0, None))(self._params, self._buffers, stacks)
-        return every[model_index, torch.arange(len(model_index))]
+        return every[model_index, torch.arange(len(model_index), device=model_index.device)]
 
     def reset(self, env: LaneChangeEnv, cars: Sequence[CurvatureVehicle]) -> None:
         """A new episode: each car's network and target lane were drawn with the scene
