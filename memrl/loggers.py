@@ -45,7 +45,7 @@ def check_backend(logger_cfg: Mapping[str, Any] | None) -> None:
             "(or choose logger=csv)")
 
 
-def flat_hparams(config: Mapping[str, Any], prefix: str = "") -> dict[str, bool | int | float | str]:
+def flat_hparams(config: Mapping[Any, Any], prefix: str = "") -> dict[str, bool | int | float | str]:
     """A nested config as ``{"agent.lr": 0.00025, ...}`` with scalar values only.
 
     Hand-written: TensorBoard's hparams and MLflow's params take a flat dict of scalars
@@ -116,7 +116,7 @@ def close_logger(logger: Any | None) -> None:
 
 
 @contextmanager
-def open_logger(cfg: DictConfig, run_dir: Path, hparams: Mapping[str, Any] | None
+def open_logger(cfg: DictConfig, run_dir: Path, hparams: Mapping[Any, Any] | None
                 ) -> Iterator[Any | None]:
     """The run's logger for the duration of the block; ``hparams`` (the resolved config, or
     None on resume) are logged once at the start."""

@@ -52,8 +52,9 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
         saved = cfg.copy()
         saved.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run too
         resolved = OmegaConf.to_container(saved, resolve=True)
+        assert isinstance(resolved, dict)
         if not cfg.resume:
-            (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(resolved))
+            (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(saved, resolve=True))
         if demos is None and cfg.mode.name in ("A", "B"):
             demos = prior_knowledge(cfg)
         with open_logger(saved, run_dir, hparams=None if cfg.resume else resolved) as logger:
