@@ -148,8 +148,15 @@ class HeldLog:
         self.pending.append((name, float(value), int(step)))
 
     def flush(self) -> None:
-        """Hand the held points to the backend (called right after each checkpoint)."""
-        for name, value, step in self.pending:
-            self.logger.log_scalar(name, value, step=step)
+        """Hand the held points to the backend (called right after each checkpoint): one
+        ``log_metrics`` call per run of points at the same step (one W&B row, one MLflow
+        batch), a repeated name starting the next call."""
+        group: dict[str, float] = {}
+        for i, (name, value, step) in enumerate(self.pending):
+            group[name] = value
+            after = self.pending[i + 1] if i + 1 < len(self.pending) else None
+            if after is None or after[2] != step or after[0] in group:
+                self.logger.log_metrics(group, step=step)
+                group = {}
         self.pending.clear()
         self.logger.flush()

@@ -251,3 +251,27 @@ def test_mlflow_run_named_after_the_folder_with_params_and_one_point_per_step(
     assert run.data.params["agent.lr"] == "0.00025"
     history = MlflowClient(uri).get_metric_history(run_id, "episode/return")
     assert [m.step for m in history] == [int(r["env_steps"]) for r in rows(run_dir / "episodes.csv")]
+
+
+def test_held_points_reach_the_backend_only_at_flush_grouped_by_step():
+    from memrl.loggers import HeldLog
+
+    class Backend:
+        def __init__(self):
+            self.calls = []
+
+        def log_metrics(self, metrics, step):
+            self.calls.append((dict(metrics), step))
+
+        def flush(self):
+            self.calls.append("flush")
+
+    backend = Backend()
+    held = HeldLog(backend)
+    for name, value, step in [("a", 1, 10), ("b", 2, 10), ("a", 3, 10), ("c", 4, 20)]:
+        held.log_scalar(name, value, step)
+    assert backend.calls == []  # nothing before the checkpoint
+    held.flush()
+    assert backend.calls == [({"a": 1.0, "b": 2.0}, 10), ({"a": 3.0}, 10), ({"c": 4.0}, 20), "flush"]
+    held.flush()
+    assert backend.calls[-1] == "flush" and len(backend.calls) == 5
