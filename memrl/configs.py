@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
 
 from memrl.control.config import DeployConfig
 from memrl.dqn.config import AgentConfig, BufferConfig, ModeConfig
@@ -12,7 +13,11 @@ from memrl.evaluation.protocol import ProtocolConfig
 
 
 def register_configs() -> None:
-    """Register the typed schemas that the YAML groups extend (idempotent)."""
+    """Register the typed schemas that the YAML groups extend, and memrl's resolvers
+    (idempotent)."""
+    # ${memrl.if_set:x,a,b}: a when x is set (not null or empty), else b (conf/hydra/train.yaml).
+    OmegaConf.register_new_resolver("memrl.if_set", lambda x, a, b: a if x not in (None, "") else b,
+                                    replace=True)
     cs = ConfigStore.instance()
     cs.store(group="env", name="lane_change_schema", node=LaneChangeConfig)
     cs.store(group="deploy", name="deploy_schema", node=DeployConfig)

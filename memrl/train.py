@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import traceback
 from pathlib import Path
-from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -17,6 +16,8 @@ from memrl.cli import run_hydra
 from memrl.configs import register_configs
 from memrl.dqn.config import check_train_config
 from memrl.dqn.loop import Summary, Trainer
+from memrl.loggers import check_backend, open_logger
+from memrl.run_lock import run_lock
 
 log = logging.getLogger(__name__)
 
@@ -32,17 +33,6 @@ def prior_knowledge(cfg: DictConfig) -> TensorDictBase:
     return demos.load_demos(Path(path), env_cfg=cfg.env)
 
 
-def make_logger(cfg: DictConfig, run_dir: Path) -> Any | None:
-    """The TorchRL logger of the ``logger`` group (None for ``logger=none``)."""
-    if not cfg.get("logger") or "_target_" not in cfg.logger:
-        return None
-    try:
-        return hydra.utils.instantiate(cfg.logger, log_dir=str(run_dir / "logs"))
-    except Exception as err:
-        raise RuntimeError(f"logger {cfg.logger._target_} could not start ({err}); "
-                           "install its package (tensorboard, wandb) or use logger=csv") from err
-
-
 def train(cfg: DictConfig, out_dir: Path | None = None,
           demos: TensorDictBase | None = None) -> Summary:
     """Train one run; with ``cfg.resume`` set, continue that run folder from its checkpoint.
@@ -53,20 +43,25 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
         demos: prior-knowledge transitions to use instead of loading ``mode.demos_path``.
     """
     check_train_config(cfg)
+    check_backend(cfg.get("logger"))
     run_dir = Path(cfg.resume) if cfg.resume else Path(out_dir or cfg.paths.output_dir)
     if cfg.resume and not run_dir.is_dir():
         raise FileNotFoundError(f"resume: no run folder {run_dir}")
     run_dir.mkdir(parents=True, exist_ok=True)
-    if not cfg.resume:
+    with run_lock(run_dir):
         saved = cfg.copy()
         saved.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run too
-        (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(saved, resolve=True))
-    if demos is None and cfg.mode.name in ("A", "B"):
-        demos = prior_knowledge(cfg)
-    trainer = Trainer(cfg, run_dir, demos, make_logger(cfg, run_dir))
-    if cfg.resume:
-        trainer.resume(run_dir)
-    summary = trainer.run()
+        resolved = OmegaConf.to_container(saved, resolve=True)
+        assert isinstance(resolved, dict)
+        if not cfg.resume:
+            (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(saved, resolve=True))
+        if demos is None and cfg.mode.name in ("A", "B"):
+            demos = prior_knowledge(cfg)
+        with open_logger(saved, run_dir, hparams=None if cfg.resume else resolved) as logger:
+            trainer = Trainer(cfg, run_dir, demos, logger)
+            if cfg.resume:
+                trainer.resume(run_dir)
+            summary = trainer.run()
     log.info("done: %d episodes, %d frames, %d updates in %.0f s; summary in %s",
              summary.episodes, summary.frames, summary.updates, summary.wall_s,
              run_dir / "summary.json")

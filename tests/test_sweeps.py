@@ -71,3 +71,33 @@ def test_mode_by_opponent_grid_makes_eight_runs(tmp_path):
     grid = sorted((c["mode"]["name"], c["env"]["opponent"]["type"], c["seed"]) for c in
                   (yaml.safe_load((j / "config.yaml").read_text()) for j in jobs))
     assert grid == sorted((m, o, s) for m in "AB" for o in ("constant", "mixed") for s in (0, 1))
+
+
+def test_submitit_local_launcher_runs_a_two_job_sweep(tmp_path):
+    """Hydra's submitit launcher for real, with submitit's local executor (each job its own
+    process, as on a Slurm node)."""
+    proc = run(["-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
+                "seed=0,1", *SMALL], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    jobs = job_dirs(tmp_path)
+    assert [j.name for j in jobs] == ["0", "1"]
+    assert sorted(json.loads((j / "summary.json").read_text())["seed"] for j in jobs) == [0, 1]
+    assert all(json.loads((j / "summary.json").read_text())["episodes"] == 2 for j in jobs)
+    assert len(list((jobs[0].parent / ".submitit").glob("*/*_0_log.out"))) == 2  # 2 submitit jobs
+
+
+def test_slurm_launcher_config_asks_for_one_run_per_job():
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from memrl.configs import register_configs
+
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("train", ["hydra/launcher=slurm", "hydra.launcher.gpus_per_node=1"],
+                      return_hydra_config=True)
+    launcher = cfg.hydra.launcher
+    assert launcher._target_.endswith("submitit_launcher.SlurmLauncher")
+    assert (launcher.nodes, launcher.tasks_per_node, launcher.cpus_per_task) == (1, 1, 2)
+    assert (launcher.gpus_per_node, launcher.mem_gb, launcher.timeout_min) == (1, 16, 1440)

@@ -124,8 +124,8 @@ class Trainer:
         self.demos = demos
         if self.mode in ("A", "B") and demos is None:
             raise ValueError(f"mode {self.mode} needs prior knowledge (demos)")
-        self.records = RunRecords(out_dir, logger)
-        self.periodic = PeriodicEvaluation(cfg.get("eval"), cfg.env, out_dir, logger)
+        self.records = RunRecords(out_dir, logger, echo=not cfg.progress)
+        self.periodic = PeriodicEvaluation(cfg.get("eval"), cfg.env, out_dir, self.records.log)
         self._build_stage()
         self._acc: dict[str, list[float]] = {"loss": [], "demo": []}
         self._recent: deque[dict[str, Any]] = deque(maxlen=20)
@@ -189,6 +189,7 @@ class Trainer:
         agent_data = self.counters.stage in ("default", "A", "B2") and len(self.buffer) > 0
         ckpt.save(self.out_dir / "checkpoints" / "last", self._state(),
                   self.buffer if agent_data else None)
+        self.records.flush()  # the logger gets its points once a checkpoint covers them
 
     def resume(self, run_dir: Path) -> None:
         """Continue from the last complete checkpoint of ``run_dir`` (same config required)."""
@@ -275,9 +276,19 @@ class Trainer:
                          ", ".join(f"{k} {v:.3f}" for k, v in s1.parts[-1].items()),
                          f" -> stop: {s1.stop_reason}" if s1.stop_reason else "")
                 self._log_updates()  # every check gets its row
+                self.records.stage1_check(s1.updates, self._stage1_metrics())
                 if s1.stop_reason:
                     self._finish_stage1()
                 self.save_checkpoint()
+
+    def _stage1_metrics(self) -> dict[str, float]:
+        """Logger values of the stage-1 check just made."""
+        s1 = self.stage1
+        drove = bool(s1.drives) and s1.drives[-1]["updates"] == s1.updates
+        return {"check_loss": s1.losses[-1], "agreement": s1.agreements[-1],
+                **{f"agreement_{k}": v for k, v in s1.parts[-1].items()},
+                **({f"drive_{k}": s1.drives[-1][k] for k in ("survived", "reached", "both")}
+                   if drove else {})}
 
     def _drive_stage1(self) -> None:
         """Stage 1's behaviour check: drive the greedy agent; remember the best weights."""

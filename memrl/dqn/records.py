@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import csv
-from collections.abc import Sequence
+import logging
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+from memrl.loggers import HeldLog
+
+log = logging.getLogger(__name__)
 
 EPISODE_FIELDS = ("episode", "env_steps", "return", "survival_steps", "length", "collided",
                   "reached_target", "epsilon", "stage")
@@ -45,27 +50,64 @@ class CsvTable:
             writer.writerows(rows)
 
 
-class RunRecords:
-    """Everything a run writes besides checkpoints."""
+EPISODE_METRICS = ("return", "survival_steps", "reached_target", "collided", "epsilon")
+"""Logger points of each episode: ``episode/<key>`` at the episode's env steps."""
 
-    def __init__(self, out_dir: Path, logger: Any | None) -> None:
+UPDATE_METRICS = ("loss", "mean_q", "demo_share", "updates", "updates_per_s", "frames_per_s",
+                  "epsilon")
+"""Logger points of each updates.csv row: ``train/<key>`` at its env steps; in mode B's stage 1
+(no env steps) ``stage1/<key>`` at its updates."""
+
+
+class RunRecords:
+    """Everything a run writes besides checkpoints.
+
+    Args:
+        out_dir: the run folder.
+        logger: a TorchRL logger or None; its points are held until the next checkpoint
+            (:class:`memrl.loggers.HeldLog`), so a resumed run logs nothing twice.
+        echo: also log each updates.csv row as a line (runs without a progress bar).
+    """
+
+    def __init__(self, out_dir: Path, logger: Any | None, echo: bool = False) -> None:
         self.episodes = CsvTable(out_dir / "episodes.csv", EPISODE_FIELDS)
         self.updates = CsvTable(out_dir / "updates.csv", UPDATE_FIELDS)
-        self.logger = logger
+        self.log = HeldLog(logger) if logger is not None else None
+        self.echo = echo
+
+    def _points(self, prefix: str, values: Mapping[str, Any], keys: Iterable[str], step: int) -> None:
+        if self.log is not None:
+            for key in keys:
+                if values.get(key) not in (None, ""):
+                    self.log.log_scalar(f"{prefix}/{key}", float(values[key]), step)
 
     def episode(self, row: dict[str, Any]) -> None:
         self.episodes.append(row)
-        if self.logger is not None:
-            for key in ("return", "survival_steps", "reached_target", "collided"):
-                self.logger.log_scalar(f"episode/{key}", float(row[key]), step=int(row["env_steps"]))
+        self._points("episode", row, EPISODE_METRICS, int(row["env_steps"]))
 
     def update(self, row: dict[str, Any]) -> None:
         self.updates.append(row)
-        if self.logger is not None:
-            for key in ("loss", "mean_q", "demo_share", "updates_per_s", "frames_per_s"):
-                if row.get(key) not in (None, ""):
-                    self.logger.log_scalar(f"train/{key}", float(row[key]), step=int(row["updates"]))
+        if row["stage"] == "B1":
+            self._points("stage1", row, UPDATE_METRICS, int(row["updates"]))
+        else:
+            self._points("train", row, UPDATE_METRICS, int(row["env_steps"]))
+        if self.echo:
+            log.info("updates %d, env steps %d, stage %s: loss %.4g, mean Q %.4g, eps %.3f, "
+                     "%.1f updates/s, %.0f env steps/s", row["updates"], row["env_steps"],
+                     row["stage"], row["loss"], row["mean_q"], row["epsilon"],
+                     row["updates_per_s"], row["frames_per_s"])
+
+    def stage1_check(self, updates: int, values: Mapping[str, float]) -> None:
+        """Mode B stage 1's check (loss, agreement and its parts, drives) at ``updates``."""
+        self._points("stage1", values, values, updates)
+
+    def flush(self) -> None:
+        """Hand the held logger points to the backend (after each checkpoint)."""
+        if self.log is not None:
+            self.log.flush()
 
     def rewind(self, episodes: int, update_rows: int) -> None:
+        """After a resume: keep the CSV rows up to the checkpoint (the logger never got the
+        later points, see :class:`memrl.loggers.HeldLog`)."""
         self.episodes.truncate(episodes)
         self.updates.truncate(update_rows)
