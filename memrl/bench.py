@@ -15,6 +15,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from memrl.cli import run_hydra
+from memrl.configs import register_configs
 
 log = logging.getLogger(__name__)
 
@@ -101,4 +102,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    register_configs()
     run_hydra(main, positional_key="benchmarks")

@@ -11,6 +11,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl.errors import UserError
+
 PRECISIONS = ("auto", "float32", "bfloat16")
 
 
@@ -149,7 +151,7 @@ class ModeConfig:
     stage2: Stage2Config = field(default_factory=Stage2Config)
 
 
-class TrainConfigError(ValueError):
+class TrainConfigError(UserError, ValueError):
     """A training config value is out of range."""
 
 

@@ -14,6 +14,8 @@ import numpy as np
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
+from memrl.errors import UserError
+
 SPEED_CHANGES = (-1, 0, +1)
 """Multiples of ``speed_step`` [m/s]: slower, keep, faster."""
 CURVATURE_CHANGES = (-1, 0, +1)
@@ -27,7 +29,7 @@ IDLE = ACTIONS.index((0, 0))
 """The action that keeps speed and curvature (index 4)."""
 
 
-class InvalidActionError(ValueError):
+class InvalidActionError(UserError, ValueError):
     """An action that is not one of the 9 action indices."""
 
 
