@@ -46,6 +46,8 @@ def _valid(meta: Mapping[str, Any]) -> str:
 
 
 def _element_ok(value: Any, meta: Mapping[str, Any]) -> bool:
+    if not meta:
+        return True
     if "choices" in meta:
         return value in meta["choices"]
     if isinstance(value, bool) or not isinstance(value, int | float):
