@@ -146,6 +146,10 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             remove_if_bare(out)
+            if is_user_error(err) and os.environ.get(ONE_LINE_ENV):
+                # here, not in run_hydra: Hydra would first print a line of its own
+                print(f"error: {one_line(err)}", file=sys.stderr)
+                sys.exit(USAGE_EXIT)
             raise
         out.mkdir(parents=True, exist_ok=True)
         (out / ERROR_FILE).write_text(traceback.format_exc())

@@ -50,6 +50,11 @@ def is_user_error(err: BaseException) -> bool:
     return isinstance(err, OSError) and err.errno in _FILE_ERRNOS
 
 
+def exit_status(err: BaseException) -> int:
+    """The command's exit status for an error: :data:`USAGE_EXIT` for bad input, else 1."""
+    return USAGE_EXIT if is_user_error(err) else 1
+
+
 def one_line(err: BaseException) -> str:
     """The message of a user error on one line, naming the key (config errors) or the file."""
     omegaconf = sys.modules.get("omegaconf.errors")

@@ -170,6 +170,9 @@ def check_train(cfg: DictConfig) -> None:
 
     check_fields(TrainSchema, cfg)
     check_train_config(cfg)
+    if cfg.self_play_every and cfg.env.opponent.type == "constant":
+        raise config_error("self_play_every", "snapshots join the learned cars' pool; it needs "
+                           "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
     check_env(cfg.env)
     if cfg.resume is not None and not Path(cfg.resume).is_dir():
@@ -255,7 +258,10 @@ def check_evaluate(cfg: DictConfig) -> None:
     check_fields(EvaluateSchema, cfg)
     check_env(cfg.env)
     check_protocol(cfg.protocol)
-    run = cfg.policy.get("run") if "run" in cfg.policy else None
+    if OmegaConf.is_missing(cfg.policy, "run") if "run" in cfg.policy.keys() else False:
+        raise config_error("policy.run", "missing: give policy.run=<run or multirun folder>, "
+                           "or another policy (policy=scripted|random|human)")
+    run = cfg.policy.get("run") if "run" in cfg.policy.keys() else None
     runs = [] if run is None else ([run] if isinstance(run, str) else list(run))
     for item in runs:
         if not Path(str(item)).exists():
