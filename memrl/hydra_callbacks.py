@@ -27,12 +27,15 @@ SWEEP_FAILED_EXIT = 1
 
 def check_config(config: DictConfig) -> None:
     """Run the checks of the command whose config this is (by config name)."""
-    from memrl.schemas import CHECKS
+    from memrl.schemas import CHECKS, check_writable
 
     name = OmegaConf.select(config, "hydra.job.config_name")
     check = CHECKS.get(str(name))
     if check is not None:
         check(config)
+    run_dir = OmegaConf.select(config, "hydra.run.dir")
+    if run_dir is not None:
+        check_writable(run_dir, "paths.output_root")  # before Hydra makes the run folder
 
 
 class StartChecks(Callback):

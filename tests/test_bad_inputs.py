@@ -289,6 +289,17 @@ CLI_ROWS = [
 @pytest.mark.parametrize(("args", "name"), CLI_ROWS, ids=[" ".join(a) for a, _ in CLI_ROWS])
 def test_command_line_prints_one_line_and_leaves_no_run_folder(tmp_path, args, name):
     proc = cli(args, tmp_path)
+    _assert_refused(proc, tmp_path, name)
+
+
+def test_unwritable_output_folder_is_refused_before_hydra_writes(tmp_path):
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file where the outputs should go\n")
+    proc = cli(["memrl.preview", f"paths.output_root={blocker}/outputs"], tmp_path)
+    _assert_refused(proc, tmp_path, "paths.output_root")
+
+
+def _assert_refused(proc: subprocess.CompletedProcess, tmp_path: Path, name: str) -> None:
     assert proc.returncode == USAGE_EXIT, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and name in lines[0], proc.stderr
