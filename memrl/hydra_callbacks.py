@@ -55,7 +55,9 @@ class StartChecks(Callback):
 
 def failed_jobs(sweep_dir: Path) -> tuple[int, list[Path]]:
     """The number of job folders of a sweep and the error files of those that failed."""
-    jobs = [p for p in sweep_dir.iterdir() if p.is_dir()] if sweep_dir.is_dir() else []
+    # job folders: not hidden ones such as a launcher's own (.submitit)
+    jobs = [p for p in sweep_dir.iterdir() if p.is_dir() and not p.name.startswith(".")] \
+        if sweep_dir.is_dir() else []
     return len(jobs), sorted((p / ERROR_FILE for p in jobs if (p / ERROR_FILE).is_file()),
                              key=lambda p: (len(p.parent.name), p.parent.name))
 

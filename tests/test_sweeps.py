@@ -56,7 +56,7 @@ def test_failing_jobs_let_the_others_finish_then_the_sweep_exits_non_zero(tmp_pa
 def test_a_sweep_without_failures_exits_zero_and_reports_nothing(tmp_path):
     from memrl.hydra_callbacks import failure_report
 
-    for num in ("0", "1"):
+    for num in ("0", "1", ".submitit"):
         (tmp_path / num).mkdir()
     assert failure_report(tmp_path) is None
     (tmp_path / "1" / "error.txt").write_text("Traceback ...\nValueError: boom\n")
