@@ -75,26 +75,40 @@ FLOAT32_UNIT_ROUNDOFF = 2.0 ** -24
 
 
 def float32_bound(qnet, pixels: torch.Tensor) -> torch.Tensor:
-    """Bound on |Q_float32 - Q_exact| of ``qnet`` for any summation order of its float32 sums.
+    """First-order bound on |Q_float32 - Q_exact| of ``qnet`` for any summation order.
 
-    Each output is a chain of dot products of lengths K_l (3x3 convs over 4 then 16 channels,
-    FC 1600 and 256, plus the input scaling); with n = sum of K_l, the classic bound
-    (Higham, Accuracy and Stability, Sec. 3.1) is gamma_n = n u / (1 - n u) times the same
-    network run on absolute values (|W| |x|; ReLU and max-pool are monotone and 1-Lipschitz,
-    so the bound goes through them). Exact arithmetic is approximated by float64.
+    Each conv or linear output z_l is a dot product of length K_l (+ bias); computed in float32
+    in any order it is off by at most gamma_K (|W_l| |h_l-1| + |b_l|), gamma_K = K u / (1 - K u)
+    (Higham, Accuracy and Stability of Numerical Algorithms, Sec. 3.1). Each such error reaches
+    Q through the network's own Jacobian dQ/dz_l (ReLU and max-pool are piecewise linear), so
+    |dQ| <= sum_l |dQ/dz_l| . bound_l, to first order in u. Exact values: float64.
     """
-    convs = [m for m in qnet.features if isinstance(m, torch.nn.Conv2d)]
-    fcs = [m for m in qnet.head if isinstance(m, torch.nn.Linear)]
-    n = 1 + sum(c.in_channels * 9 + 1 for c in convs) + sum(f.in_features + 1 for f in fcs)
-    gamma = n * FLOAT32_UNIT_ROUNDOFF / (1 - n * FLOAT32_UNIT_ROUNDOFF)
-    absnet = copy.deepcopy(qnet).double()
-    absnet.conv_dtype = None
-    with torch.no_grad():
-        for p in absnet.parameters():
-            p.abs_()
-        x = pixels.reshape(-1, *pixels.shape[-3:]).double() / 255.0
-        magnitude = absnet.head(absnet.features(x)).reshape(*pixels.shape[:-3], -1)
-    return gamma * magnitude.float()
+    net = copy.deepcopy(qnet).double()
+    convs = [m for m in net.features if isinstance(m, torch.nn.Conv2d)]
+    fcs = [m for m in net.head if isinstance(m, torch.nn.Linear)]
+    h = pixels.reshape(-1, *pixels.shape[-3:]).double() / 255.0
+    zs, local = [], []
+    for layer in [*net.features, *net.head]:
+        if isinstance(layer, torch.nn.Conv2d | torch.nn.Linear):
+            k = (layer.in_channels * 9 if isinstance(layer, torch.nn.Conv2d) else layer.in_features)
+            k += 1 + (layer is convs[0])  # the bias; the input's scaling by 1/255
+            gamma = k * FLOAT32_UNIT_ROUNDOFF / (1 - k * FLOAT32_UNIT_ROUNDOFF)
+            with torch.no_grad():
+                w, bias = layer.weight.abs(), layer.bias.abs()
+                size = (torch.nn.functional.conv2d(h.abs(), w, bias, padding=layer.padding)
+                        if isinstance(layer, torch.nn.Conv2d)
+                        else torch.nn.functional.linear(h.abs(), w, bias))
+            h = layer(h)
+            zs.append(h)
+            local.append(gamma * size)
+        else:
+            h = layer(h)
+    bound = torch.zeros_like(h)
+    for action in range(h.shape[-1]):
+        grads = torch.autograd.grad(h[:, action].sum(), zs, retain_graph=True)
+        bound[:, action] = sum((g.abs() * r).flatten(1).sum(1) for g, r in zip(grads, local, strict=True))
+    assert len(zs) == len(convs) + len(fcs)
+    return bound.reshape(*pixels.shape[:-3], -1).float().detach()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
