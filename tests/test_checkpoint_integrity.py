@@ -72,6 +72,20 @@ def test_resume_refuses_a_damaged_checkpoint_naming_the_file(compose_cfg, finish
     assert {p: p.stat().st_mtime_ns for p in run.rglob("*") if p.is_file()} == before
 
 
+def test_a_damaged_buffer_without_manifest_is_refused_naming_the_buffer(compose_cfg, finished_run,
+                                                                       tmp_path):
+    """Checkpoints written before manifests: the buffer's own loading error, with its path."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    last = run / "checkpoints" / "last"
+    (last / ckpt.MANIFEST).unlink()
+    ring = last / "buffer" / "storage" / "frame_ring.npy"
+    truncate(ring, ring.stat().st_size // 2)
+    with pytest.raises(ckpt.CheckpointError) as info:
+        train(compose_cfg("train", TINY + ["total_episodes=3", f"resume={run}"]))
+    assert one_line(info.value).startswith(str(last / "buffer"))
+
+
 def test_an_intact_checkpoint_passes_its_manifest(finished_run):
     last = finished_run / "checkpoints" / "last"
     files = json.loads((last / ckpt.MANIFEST).read_text())["files"]
