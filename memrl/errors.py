@@ -76,4 +76,4 @@ def one_line(err: BaseException) -> str:
 def _first_lines(err: BaseException) -> str:
     lines = [ln.strip() for ln in str(err).splitlines()
              if ln.strip() and not ln.startswith(_NOISE) and not ln.strip().startswith(_NOISE[:4])]
-    return "; ".join(lines) or type(err).__name__
+    return "; ".join(ln.rstrip(".") for ln in lines) or type(err).__name__
