@@ -11,10 +11,11 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-import torch
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.cli import run_hydra
+from memrl.cli import run_hydra, run_task
+from memrl.configs import register_configs
+from memrl.schemas import check_bench
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,8 @@ BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "s
 
 def machine() -> dict[str, Any]:
     """What the figures were measured on."""
+    import torch
+
     return {
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
@@ -86,9 +89,7 @@ def machine() -> dict[str, Any]:
 
 def bench(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     """Run the selected benchmarks; write ``bench.json`` to ``out_dir`` and return the figures."""
-    unknown = [name for name in cfg.benchmarks if name not in BENCHMARKS]
-    if unknown:
-        raise ValueError(f"unknown benchmark(s) {unknown}; known: {sorted(BENCHMARKS)}")
+    check_bench(cfg)  # every value (benchmark names included) before anything runs
     result: dict[str, Any] = {"machine": machine()}
     for name in cfg.benchmarks:
         log.info("running benchmark %s", name)
@@ -103,8 +104,9 @@ def bench(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="bench")
 def main(cfg: DictConfig) -> None:
-    bench(cfg, Path(cfg.paths.output_dir))
+    run_task(lambda c: bench(c, Path(c.paths.output_dir)), cfg)
 
 
 if __name__ == "__main__":
+    register_configs()
     run_hydra(main, positional_key="benchmarks")

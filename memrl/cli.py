@@ -2,11 +2,25 @@
 
 from __future__ import annotations
 
+import logging
+import os
+import shutil
 import sys
+import traceback
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
+from omegaconf import DictConfig
+
+from memrl.errors import ONE_LINE_ENV, USAGE_EXIT, is_user_error, one_line
+
+log = logging.getLogger(__name__)
+
 _FLAGS_FIRST = ("-m", "--multirun")
+_DEBUG_ON = ("true", "True", "1", "yes")
+HYDRA_FILES = (".hydra",)
+"""What Hydra itself puts into a run folder before the task starts (besides ``<task>.log``)."""
 
 
 def normalize_argv(argv: Sequence[str], positional_key: str | None = None) -> list[str]:
@@ -22,8 +36,8 @@ def normalize_argv(argv: Sequence[str], positional_key: str | None = None) -> li
     words: list[str] = []
     if positional_key is not None:
         # A bare word directly after a flag that takes a value is that flag's value.
-        takes_value = {"--config-name", "-cn", "--config-path", "-cp", "--config-dir", "-cd",
-                       "--info", "-i", "--package", "-p", "--experimental-rerun"}
+        takes_value = {"--cfg", "-c", "--config-name", "-cn", "--config-path", "-cp", "--config-dir",
+                       "-cd", "--info", "-i", "--package", "-p", "--experimental-rerun"}
         kept: list[str] = []
         for i, a in enumerate(rest):
             prev = rest[i - 1] if i else ""
@@ -37,7 +51,108 @@ def normalize_argv(argv: Sequence[str], positional_key: str | None = None) -> li
     return flags + rest
 
 
+def wants_traceback(argv: Sequence[str]) -> bool:
+    """``debug=true`` on the command line, or ``HYDRA_FULL_ERROR=1`` in the environment."""
+    debug = any(a.lstrip("+").split("=", 1) in (["debug", v] for v in _DEBUG_ON) for a in argv)
+    return debug or os.environ.get("HYDRA_FULL_ERROR") in _DEBUG_ON
+
+
+HELP_FLAGS = ("--help", "-h", "--hydra-help")
+
+
+def share_group_listing() -> None:
+    """Make Hydra's help screen list the config groups from one copy of its repository.
+
+    Hand-written: Hydra 1.3 deep-copies the whole config repository (every structured schema)
+    for each of the ~120 group look-ups of ``--help``, 2-5 s here; they all read the same one.
+    Composition is untouched (it does not go through ``get_group_options``).
+    """
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra.core.object_type import ObjectType
+
+    repos: dict[tuple, Any] = {}
+
+    def get_group_options(self: Any, group_name: str,
+                          results_filter: ObjectType | None = ObjectType.CONFIG,
+                          config_name: str | None = None,
+                          overrides: list[str] | None = None) -> list[str]:
+        key = (id(self), config_name, tuple(overrides or ()))
+        if key not in repos:
+            repos[key] = self._parse_overrides_and_create_caching_repo(config_name,
+                                                                        list(overrides or ()))[1]
+        return repos[key].get_group_options(group_name, results_filter)
+
+    ConfigLoaderImpl.get_group_options = get_group_options  # type: ignore[method-assign]
+
+
 def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any:
-    """Call a ``@hydra.main`` function after :func:`normalize_argv` on ``sys.argv``."""
+    """Call a ``@hydra.main`` function after :func:`normalize_argv` on ``sys.argv``.
+
+    A user error (:func:`memrl.errors.is_user_error`) prints one line and exits with
+    :data:`~memrl.errors.USAGE_EXIT`; other errors keep their full traceback. With
+    ``debug=true`` or ``HYDRA_FULL_ERROR=1``, every error shows its full traceback.
+    """
     sys.argv = [sys.argv[0], *normalize_argv(sys.argv[1:], positional_key)]
-    return main()
+    one_line_errors = not wants_traceback(sys.argv[1:])
+    if any(a in HELP_FLAGS for a in sys.argv[1:]):
+        share_group_listing()
+    # Hand-written: Hydra prints its own multi-line trace for every error; with
+    # HYDRA_FULL_ERROR it raises instead, and the user errors get one line here.
+    saved = {k: os.environ.get(k) for k in ("HYDRA_FULL_ERROR", ONE_LINE_ENV)}
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    if one_line_errors:
+        os.environ[ONE_LINE_ENV] = "1"
+    try:
+        return main()
+    except Exception as err:
+        if not (one_line_errors and is_user_error(err)):
+            raise
+        print(f"error: {one_line(err)}", file=sys.stderr)
+        sys.exit(USAGE_EXIT)
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def remove_if_bare(run_dir: Path) -> bool:
+    """Remove a run folder that holds only what Hydra wrote before the task (True if removed)."""
+    if not run_dir.is_dir():
+        return False
+    if any(p.name not in HYDRA_FILES and p.suffix != ".log" for p in run_dir.iterdir()):
+        return False
+    shutil.rmtree(run_dir, ignore_errors=True)
+    return True
+
+
+def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
+    """The body of every ``@hydra.main``: call the typed function ``task`` on ``cfg``.
+
+    A single run that fails leaves no folder that looks like a run (Hydra's own files are
+    removed). In a sweep, a failing job writes its traceback to ``error.txt`` in its folder and
+    the sweep goes on; ``memrl.hydra_callbacks.SweepFailures`` reports it at the end.
+    """
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from memrl.hydra_callbacks import ERROR_FILE
+
+    hydra_cfg = HydraConfig.get()
+    out = Path(hydra_cfg.runtime.output_dir)
+    try:
+        return task(cfg)
+    except Exception as err:
+        if hydra_cfg.mode != RunMode.MULTIRUN:
+            remove_if_bare(out)
+            if is_user_error(err) and os.environ.get(ONE_LINE_ENV):
+                # here, not in run_hydra: Hydra would first print a line of its own
+                print(f"error: {one_line(err)}", file=sys.stderr)
+                sys.exit(USAGE_EXIT)
+            raise
+        out.mkdir(parents=True, exist_ok=True)
+        (out / ERROR_FILE).write_text(traceback.format_exc())
+        summary = one_line(err) if is_user_error(err) else f"{type(err).__name__}: {err}"
+        log.error("job failed: %s; traceback in %s", summary, out / ERROR_FILE)
+        return None

@@ -1,4 +1,4 @@
-"""Structured-config schemas registered with Hydra's ConfigStore."""
+"""Structured-config schemas registered with Hydra's ConfigStore (no torch import: ``--help`` stays fast)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ from omegaconf import OmegaConf
 from memrl.control.config import DeployConfig
 from memrl.dqn.config import AgentConfig, BufferConfig, ModeConfig
 from memrl.envs.config import LaneChangeConfig
-from memrl.evaluation.periodic import PeriodicEvalConfig
+from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.protocol import ProtocolConfig
+from memrl.schemas import SCHEMAS
 
 
 def register_configs() -> None:
@@ -19,6 +20,8 @@ def register_configs() -> None:
     OmegaConf.register_new_resolver("memrl.if_set", lambda x, a, b: a if x not in (None, "") else b,
                                     replace=True)
     cs = ConfigStore.instance()
+    for name, schema in SCHEMAS.items():  # the top-level keys of each command
+        cs.store(name=f"{name}_schema", node=schema)
     cs.store(group="env", name="lane_change_schema", node=LaneChangeConfig)
     cs.store(group="deploy", name="deploy_schema", node=DeployConfig)
     cs.store(group="agent", name="dqn_schema", node=AgentConfig)

@@ -13,22 +13,19 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.cli import run_hydra
+from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
-from memrl.control.baseline import simulator_summary
 from memrl.control.config import DeployConfig, check_deploy_config
-from memrl.control.episode import EpisodeRecord, run_episode
-from memrl.control.metrics import episode_metrics, summarize
-from memrl.control.plot import plot_episode
-from memrl.control.tracking import TrackedCar
-from memrl.envs.lane_change import LaneChangeEnv
-from memrl.envs.torchrl_env import env_kwargs
-from memrl.modules.policy import DrivingPolicy, RandomPolicy
+from memrl.schemas import check_deploy
+
+if TYPE_CHECKING:  # the env and vehicle stacks load on the first run, not for --help
+    from memrl.control.episode import EpisodeRecord
+    from memrl.modules.policy import DrivingPolicy
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +64,8 @@ def make_policy(cfg: DeployConfig) -> DrivingPolicy:
             ) from err
         assert cfg.checkpoint is not None
         return load_policy(cfg.checkpoint)
+    from memrl.modules.policy import RandomPolicy
+
     return RandomPolicy(cfg.seed)
 
 
@@ -87,6 +86,15 @@ def deploy(cfg: DictConfig, out_dir: Path, policy: DrivingPolicy | None = None) 
         out_dir: where to write.
         policy: the driver; default: built from ``cfg.deploy.policy``.
     """
+    from memrl.control.baseline import simulator_summary
+    from memrl.control.episode import run_episode
+    from memrl.control.metrics import episode_metrics, summarize
+    from memrl.control.plot import plot_episode
+    from memrl.control.tracking import TrackedCar
+    from memrl.envs.lane_change import LaneChangeEnv
+    from memrl.envs.torchrl_env import env_kwargs
+
+    check_deploy(cfg)
     dcfg = deploy_config(cfg.deploy)
     policy = policy or make_policy(dcfg)
     env = LaneChangeEnv(config=env_kwargs(cfg.env))
@@ -123,7 +131,7 @@ def deploy(cfg: DictConfig, out_dir: Path, policy: DrivingPolicy | None = None) 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="deploy")
 def main(cfg: DictConfig) -> None:
-    deploy(cfg, Path(cfg.paths.output_dir))
+    run_task(lambda c: deploy(c, Path(c.paths.output_dir)), cfg)
 
 
 if __name__ == "__main__":

@@ -11,17 +11,19 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.cli import run_hydra
+from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
-from memrl.evaluation.policies import PolicySource
-from memrl.evaluation.protocol import check_protocol
-from memrl.evaluation.results import EvalResult
-from memrl.evaluation.session import evaluate_candidate, score_line
+from memrl.schemas import check_evaluate
+
+if TYPE_CHECKING:  # the evaluation stack (torch) loads on the first run, not for --help
+    from memrl.evaluation.policies import PolicySource
+    from memrl.evaluation.results import EvalResult
 
 log = logging.getLogger(__name__)
 
@@ -42,9 +44,11 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
         out_dir: folder for policies that are not training runs (default: Hydra's
             ``paths.output_dir``).
     """
+    from memrl.evaluation.protocol import check_protocol
+    from memrl.evaluation.session import evaluate_candidate, score_line
+
+    check_evaluate(cfg)
     protocol = check_protocol(cfg.protocol)
-    if int(cfg.batch) < 1:
-        raise ValueError(f"evaluate 'batch': need >= 1, got {cfg.batch}")
     source: PolicySource = instantiate(cfg.policy)
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
     results = []
@@ -60,7 +64,7 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    evaluate(cfg)
+    run_task(evaluate, cfg)
 
 
 if __name__ == "__main__":

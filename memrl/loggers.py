@@ -19,6 +19,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from memrl.errors import UserError
+
 log = logging.getLogger(__name__)
 
 BACKENDS = {"TensorboardLogger": ("tensorboard", "tensorboard"), "WandbLogger": ("wandb", "wandb"),
@@ -29,7 +31,7 @@ RUN_REF = "logger.json"
 """File under ``<run>/logs/`` with the backend's run id, so a resume continues the same run."""
 
 
-class LoggerBackendMissing(ImportError):
+class LoggerBackendMissing(UserError, ImportError):
     """The chosen logger's package is not installed."""
 
 

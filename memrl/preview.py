@@ -6,16 +6,13 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import hydra
 import numpy as np
-import torch
 from omegaconf import DictConfig
 
-from memrl.cli import run_hydra
+from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
-from memrl.envs.torchrl_env import make_env
-from memrl.envs.vehicles import IDLE, N_ACTIONS
+from memrl.schemas import check_preview
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +37,14 @@ def preview(cfg: DictConfig, out_dir: Path) -> PreviewFiles:
     ``observations.png``: one row per captured step, the 4 stacked grayscale frames the network
     receives (oldest left). ``scene.png``: the full-scene pictures at the same steps.
     """
-    if cfg.driver not in ("idle", "random"):
-        raise ValueError(f"preview 'driver': expected idle or random, got {cfg.driver!r}")
+    import torch
+
+    from memrl.envs.torchrl_env import make_env
+    from memrl.envs.vehicles import IDLE, N_ACTIONS
+
+    check_preview(cfg)
+    import cv2
+
     env = make_env(cfg.env, seed=cfg.seed, render_mode="rgb_array")
     gen = torch.Generator().manual_seed(int(cfg.seed))
     wanted = sorted(int(s) for s in cfg.steps)
@@ -73,7 +76,7 @@ def preview(cfg: DictConfig, out_dir: Path) -> PreviewFiles:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="preview")
 def main(cfg: DictConfig) -> None:
-    preview(cfg, Path(cfg.paths.output_dir))
+    run_task(lambda c: preview(c, Path(c.paths.output_dir)), cfg)
 
 
 if __name__ == "__main__":

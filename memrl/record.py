@@ -13,10 +13,9 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.cli import run_hydra
+from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
-from memrl.data.demos import dataset_bytes, ensure_example_demos, read_metadata
-from memrl.data.recording import record_to_dataset
+from memrl.schemas import check_record
 
 log = logging.getLogger(__name__)
 
@@ -49,27 +48,16 @@ def record(cfg: DictConfig) -> RecordSummary:
 
     With ``cfg.example``, make or check the cached scripted example for ``cfg.env`` instead.
     """
-    if cfg.keep not in ("stable", "all"):
-        raise ValueError(f"record 'keep': expected stable or all, got {cfg.keep!r}")
-    if int(cfg.episodes) < 1:
-        raise ValueError(f"record 'episodes': need >= 1, got {cfg.episodes!r}")
+    from memrl.data.demos import dataset_bytes, ensure_example_demos, read_metadata
+    from memrl.data.recording import record_to_dataset
+
+    check_record(cfg)  # every value, and the output folder writable, before recording
     tail = cfg.get("tail_steps")
-    if tail is not None and (not isinstance(tail, int) or tail < 0):
-        raise ValueError(f"record 'tail_steps': need null or an integer >= 0, got {tail!r}")
     noise = cfg.get("action_noise", 0.0)
-    if isinstance(noise, bool) or not isinstance(noise, int | float) or not 0.0 <= noise < 1.0:
-        raise ValueError(f"record 'action_noise': need a probability in [0, 1), got {noise!r}")
     start = time.perf_counter()
     started = datetime.now(UTC).replace(microsecond=0)
     stopped = False
     if cfg.example:
-        if tail is not None or noise:
-            raise ValueError("record 'example': the example dataset holds whole noiseless "
-                             "episodes; drop tail_steps and action_noise, or record without "
-                             "example=true")
-        if cfg.demos.source != "scripted":
-            raise ValueError("record 'example': the example dataset is made by the scripted driver "
-                             f"(demos=scripted), not demos={cfg.demos.source}")
         path: Path | None = ensure_example_demos(cfg.env, cfg.paths.data_dir, episodes=int(cfg.episodes),
                                                  seed=int(cfg.seed), overwrite=bool(cfg.overwrite))
         meta = read_metadata(path)  # type: ignore[arg-type]
@@ -97,7 +85,7 @@ def record(cfg: DictConfig) -> RecordSummary:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="record")
 def main(cfg: DictConfig) -> None:
-    record(cfg)
+    run_task(record, cfg)
 
 
 if __name__ == "__main__":

@@ -13,18 +13,18 @@ import json
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.cli import run_hydra
+from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
 from memrl.evaluate import workers_of
-from memrl.evaluation import figures, rollouts, stats, tables
-from memrl.evaluation.policies import CheckpointSource
-from memrl.evaluation.protocol import check_protocol, protocol_id
-from memrl.evaluation.results import EVAL_JSON, EvalResult, find_results, read_result
-from memrl.evaluation.session import evaluate_candidate
+from memrl.schemas import check_report
+
+if TYPE_CHECKING:  # the evaluation stack (torch) loads on the first run, not for --help
+    from memrl.evaluation.results import EvalResult
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,11 @@ class ReportFiles:
 def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
     """Evaluate the trained runs under ``cfg.runs`` whose ``eval/eval.json`` is missing or was
     made under another protocol."""
+    from memrl.evaluation.policies import CheckpointSource
+    from memrl.evaluation.protocol import check_protocol, protocol_id
+    from memrl.evaluation.results import EVAL_JSON, read_result
+    from memrl.evaluation.session import evaluate_candidate
+
     protocol = check_protocol(cfg.protocol)
     wanted = protocol_id(protocol)
     done = []
@@ -66,6 +71,8 @@ def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
 
 
 def _rollouts(cfg: DictConfig, results: list[EvalResult], out: Path, files: ReportFiles) -> None:
+    from memrl.evaluation import rollouts, stats
+
     r = cfg.rollouts
     by = stats.group(results)
     for label in r.rows:
@@ -111,9 +118,10 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
         cfg: the composed ``report`` config.
         out_dir: where to write (default: Hydra's ``paths.output_dir``).
     """
-    if not cfg.runs:
-        raise ValueError("report 'runs': give one or more run, multirun or evaluation folders, "
-                         "e.g. runs=[outputs/train/multiruns/2026-11-22_10-00-00]")
+    from memrl.evaluation import figures, stats, tables
+    from memrl.evaluation.results import find_results
+
+    check_report(cfg)
     out = Path(out_dir or cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     if cfg.evaluate_missing:
@@ -165,7 +173,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="report")
 def main(cfg: DictConfig) -> None:
-    report(cfg)
+    run_task(report, cfg)
 
 
 if __name__ == "__main__":

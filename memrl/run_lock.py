@@ -8,11 +8,13 @@ from pathlib import Path
 
 from filelock import FileLock, Timeout
 
+from memrl.errors import UserError
+
 LOCK_NAME = "train.lock"
 """Lock file in the run folder (an OS lock: released when the process ends, however it ends)."""
 
 
-class RunFolderBusy(RuntimeError):
+class RunFolderBusy(UserError, RuntimeError):
     """Another process is training in (or resuming) the same run folder."""
 
 

@@ -3,21 +3,20 @@
 from __future__ import annotations
 
 import logging
-import traceback
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
-from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
 
-from memrl.cli import run_hydra
+from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
-from memrl.dqn.config import check_train_config
-from memrl.dqn.loop import Summary, Trainer
-from memrl.loggers import check_backend, open_logger
-from memrl.run_lock import run_lock
+from memrl.schemas import check_train, check_writable
+
+if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
+    from tensordict import TensorDictBase
+
+    from memrl.dqn.loop import Summary
 
 log = logging.getLogger(__name__)
 
@@ -29,8 +28,24 @@ def prior_knowledge(cfg: DictConfig) -> TensorDictBase:
 
     path = cfg.mode.demos_path
     if path is None:
+        if not demos.example_demos_path(cfg.env, Path(cfg.paths.data_dir)).exists():
+            check_writable(cfg.paths.data_dir, "paths.data_dir")  # before recording it
         path = demos.ensure_example_demos(cfg.env, Path(cfg.paths.data_dir))
     return demos.load_demos(Path(path), env_cfg=cfg.env)
+
+
+def remove_new_entries(folder: Path, before: set[Path] | None) -> None:
+    """Remove what appeared in ``folder`` since ``before`` was listed (None: the folder is new)."""
+    import shutil
+
+    if before is None:
+        shutil.rmtree(folder, ignore_errors=True)
+        return
+    for entry in set(folder.iterdir()) - before:
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
 
 
 def train(cfg: DictConfig, out_dir: Path | None = None,
@@ -42,25 +57,36 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
         out_dir: run folder (default: Hydra's ``paths.output_dir``); ignored when resuming.
         demos: prior-knowledge transitions to use instead of loading ``mode.demos_path``.
     """
-    check_train_config(cfg)
+    from memrl.dqn.loop import Trainer
+    from memrl.loggers import check_backend, open_logger
+    from memrl.provenance import record_provenance
+    from memrl.run_lock import run_lock
+
+    check_train(cfg)  # every value, the env config and the named folders, before any write
     check_backend(cfg.get("logger"))
     run_dir = Path(cfg.resume) if cfg.resume else Path(out_dir or cfg.paths.output_dir)
-    if cfg.resume and not run_dir.is_dir():
-        raise FileNotFoundError(f"resume: no run folder {run_dir}")
+    if demos is None and cfg.mode.name in ("A", "B"):
+        demos = prior_knowledge(cfg)  # a bad dataset stops the run before its folder is made
+    fresh = not cfg.resume
+    before = set(run_dir.iterdir()) if run_dir.is_dir() else None
     run_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(run_dir):
         saved = cfg.copy()
         saved.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run too
         resolved = OmegaConf.to_container(saved, resolve=True)
         assert isinstance(resolved, dict)
-        if not cfg.resume:
-            (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(saved, resolve=True))
-        if demos is None and cfg.mode.name in ("A", "B"):
-            demos = prior_knowledge(cfg)
         with open_logger(saved, run_dir, hparams=None if cfg.resume else resolved) as logger:
-            trainer = Trainer(cfg, run_dir, demos, logger)
-            if cfg.resume:
-                trainer.resume(run_dir)
+            try:
+                if fresh:
+                    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(saved, resolve=True))
+                trainer = Trainer(cfg, run_dir, demos, logger)
+                if cfg.resume:
+                    trainer.resume(run_dir)
+            except BaseException:
+                if fresh:  # a failed start leaves no folder that looks like a run
+                    remove_new_entries(run_dir, before)
+                raise
+            record_provenance(run_dir, "start" if fresh else "resume")
             summary = trainer.run()
     log.info("done: %d episodes, %d frames, %d updates in %.0f s; summary in %s",
              summary.episodes, summary.frames, summary.updates, summary.wall_s,
@@ -70,16 +96,7 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def main(cfg: DictConfig) -> None:
-    try:
-        train(cfg)
-    except Exception:
-        if HydraConfig.get().mode != RunMode.MULTIRUN:
-            raise
-        # In a sweep, one failing job is recorded and the others go on.
-        out = Path(cfg.paths.output_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "error.txt").write_text(traceback.format_exc())
-        log.exception("job failed; error written to %s", out / "error.txt")
+    run_task(train, cfg)
 
 
 if __name__ == "__main__":

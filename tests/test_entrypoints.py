@@ -37,7 +37,7 @@ def test_bench_env_measures_both_envs_and_writes_json(compose_cfg, tmp_path):
 
 
 def test_bench_rejects_unknown_benchmark(compose_cfg, tmp_path):
-    with pytest.raises(ValueError, match="unknown benchmark"):
+    with pytest.raises(ValueError, match="benchmarks.*one of env"):
         bench(compose_cfg("bench", ["benchmarks=[nope]"]), tmp_path)
 
 

@@ -37,12 +37,32 @@ def test_verbatim_mode_b_three_seed_multirun(tmp_path):
     assert not (ROOT / "multirun").exists() and not (tmp_path / "multirun").exists()
 
 
-def test_one_failing_job_does_not_stop_the_sweep(tmp_path):
-    proc = run(["-m", "agent.lr=0.001,-1.0", *SMALL], tmp_path)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    good, bad = job_dirs(tmp_path)
-    assert (good / "summary.json").exists()
-    assert "agent.lr" in (bad / "error.txt").read_text()
+def test_failing_jobs_let_the_others_finish_then_the_sweep_exits_non_zero(tmp_path):
+    proc = run(["-m", "seed=0,1", "agent.lr=0.001,-1.0", *SMALL], tmp_path)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    jobs = job_dirs(tmp_path)
+    assert len(jobs) == 4
+    failed = [j for j in jobs if (j / "error.txt").exists()]
+    assert [j.name for j in failed] == ["1", "3"]  # agent.lr is the inner loop: jobs 1 and 3
+    assert all((j / "summary.json").exists() for j in jobs if j not in failed)
+    assert all("agent.lr" in (j / "error.txt").read_text() for j in failed)
+    report = proc.stderr[proc.stderr.index("sweep: "):].splitlines()
+    assert report[0].startswith("sweep: 2 of 4 jobs failed")
+    for line, job in zip(report[1:3], failed, strict=True):
+        assert f"job {job.name} [" in line and "agent.lr=-1.0" in line
+        assert line.endswith(str(job / "error.txt"))
+
+
+def test_a_sweep_without_failures_exits_zero_and_reports_nothing(tmp_path):
+    from memrl.hydra_callbacks import failure_report
+
+    for num in ("0", "1", ".submitit"):
+        (tmp_path / num).mkdir()
+    assert failure_report(tmp_path) is None
+    (tmp_path / "1" / "error.txt").write_text("Traceback ...\nValueError: boom\n")
+    assert failure_report(tmp_path).splitlines() == [
+        f"sweep: 1 of 2 jobs failed ({tmp_path}):",
+        f"  job 1 []: ValueError: boom -> {tmp_path / '1' / 'error.txt'}"]
 
 
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):

@@ -39,6 +39,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from memrl.errors import UserError
+
 
 @dataclass
 class VehicleModelConfig:
@@ -190,7 +192,7 @@ class DeployConfig:
 POLICIES = ("scripted", "checkpoint", "random")
 
 
-class DeployConfigError(ValueError):
+class DeployConfigError(UserError, ValueError):
     """A deploy config value is out of range."""
 
 

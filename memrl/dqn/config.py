@@ -11,6 +11,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl.errors import UserError
+
 PRECISIONS = ("auto", "float32", "bfloat16")
 
 
@@ -149,7 +151,7 @@ class ModeConfig:
     stage2: Stage2Config = field(default_factory=Stage2Config)
 
 
-class TrainConfigError(ValueError):
+class TrainConfigError(UserError, ValueError):
     """A training config value is out of range."""
 
 
@@ -162,7 +164,7 @@ def check_train_config(cfg: DictConfig) -> None:
     """Check values that a schema's types cannot: ranges and choices; names the bad key."""
     a, m = cfg.agent, cfg.mode
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
-    _need(a.lr > 0, "agent.lr", "must be > 0")
+    _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
     _need(str(a.get("precision", "auto")) in PRECISIONS, "agent.precision",
           f"must be one of {sorted(PRECISIONS)}")
     _need(a.get("threads", 0) >= 0, "agent.threads", f"must be >= 0, got {a.get('threads')}")
@@ -171,7 +173,8 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(0 <= a.eps_end <= a.eps_start <= 1, "agent.eps_start",
           f"need 0 <= eps_end <= eps_start <= 1, got {a.eps_start} -> {a.eps_end}")
     _need(a.eps_decay_frames >= 1, "agent.eps_decay_frames", "must be >= 1")
-    _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity", "must be >= agent.batch_size")
+    _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity",
+          f"must be >= agent.batch_size ({a.batch_size}), got {cfg.buffer.capacity}")
     _need(m.name in ("default", "A", "B"), "mode.name", f"expected default, A or B, got {m.name!r}")
     _need(0 < m.demo_fraction < 1, "mode.demo_fraction", f"must be in (0, 1), got {m.demo_fraction}")
     _need(m.sampling in ("stratified", "proportional"), "mode.sampling",

@@ -202,7 +202,11 @@ class Trainer:
         self._build_stage()
         self.explore.load_state_dict(state["explore"])
         if (where / "buffer").exists():
-            self.buffer.loads(where / "buffer")
+            try:
+                self.buffer.loads(where / "buffer")
+            except (OSError, ValueError, RuntimeError, KeyError) as err:  # a checkpoint without manifest
+                raise ckpt.CheckpointError(f"{where / 'buffer'}: unreadable replay buffer "
+                                           f"({type(err).__name__}: {err})") from err
         self._acc = state["acc"]
         self._recent = deque(state["recent"], maxlen=20)
         ckpt.set_rng_state(state["rng"])

@@ -27,6 +27,7 @@ from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.render import LABEL, BEVRenderer, View
 from memrl.envs.scene import max_cars, sample_scene
 from memrl.envs.vehicles import ACTIONS, IDLE, N_ACTIONS
+from memrl.errors import UserError
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
@@ -34,7 +35,7 @@ INFO_KEYS = ("collided", "on_target_lane", "reached_target")
 """Per-step flags of the agent (the reference env's ``info`` keys of the same names)."""
 
 
-class BatchedEnvError(ValueError):
+class BatchedEnvError(UserError, ValueError):
     """A bad argument of the batched engine (N, device, action batch)."""
 
 

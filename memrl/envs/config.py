@@ -12,6 +12,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+from memrl.errors import UserError
+
 
 @dataclass
 class BEVConfig:
@@ -155,7 +157,7 @@ class LaneChangeConfig:
     """The full-scene picture for people (preview, videos)."""
 
 
-class EnvConfigError(ValueError):
+class EnvConfigError(UserError, ValueError):
     """A lane-change env config value is missing, unknown or out of range."""
 
 

@@ -20,7 +20,7 @@ from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_co
 from memrl.envs.controllers import CarController, Opponents, make_opponents
 from memrl.envs.render import BEVRenderer, View, car_corners
 from memrl.envs.scene import sample_scene
-from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
+from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle, validate_action
 
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
 
@@ -46,7 +46,7 @@ class CurvatureSpeedAction(ActionType):
         return CurvatureVehicle
 
     def act(self, action: Any) -> None:
-        self.controlled_vehicle.apply_action(int(action))
+        self.controlled_vehicle.apply_action(validate_action(action))
 
     def get_available_actions(self) -> list[int]:
         return list(range(N_ACTIONS))

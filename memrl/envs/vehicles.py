@@ -6,11 +6,15 @@ speed and curvature; the heading rate is speed x curvature.
 
 from __future__ import annotations
 
+import math
+import numbers
 from typing import Any
 
 import numpy as np
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
+
+from memrl.errors import UserError
 
 SPEED_CHANGES = (-1, 0, +1)
 """Multiples of ``speed_step`` [m/s]: slower, keep, faster."""
@@ -23,6 +27,34 @@ ACTIONS: tuple[tuple[int, int], ...] = tuple(
 N_ACTIONS = len(ACTIONS)
 IDLE = ACTIONS.index((0, 0))
 """The action that keeps speed and curvature (index 4)."""
+
+
+class InvalidActionError(UserError, ValueError):
+    """An action that is not one of the 9 action indices."""
+
+
+def validate_action(action: Any) -> int:
+    """The action as a Python int, if it is an integer index in 0..8.
+
+    Accepts Python and numpy integers, and one-element integer numpy arrays and torch tensors;
+    refuses bools, floats, strings and out-of-range values (no silent cast or wrap-around).
+
+    Raises:
+        InvalidActionError: naming the action and the valid range.
+    """
+    value: int | None = None
+    if isinstance(action, bool | np.bool_):
+        value = None
+    elif isinstance(action, numbers.Integral):  # int, numpy integer scalars
+        value = int(action)
+    elif hasattr(action, "dtype") and hasattr(action, "shape"):  # numpy arrays, torch tensors
+        kind = str(action.dtype).removeprefix("torch.")
+        if kind.startswith(("int", "uint")) and math.prod(action.shape) == 1:
+            value = int(action.item())
+    if value is None or not 0 <= value < N_ACTIONS:
+        raise InvalidActionError(f"action {action!r} is not valid: expected an integer in "
+                                 f"0..{N_ACTIONS - 1}")
+    return value
 
 
 def action_index(speed_sign: int, curvature_sign: int) -> int:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,26 +16,10 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from memrl.dqn.records import CsvTable
+from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import INITIAL_LANES, ProtocolConfig, protocol_env, scenario_seeds, score
 from memrl.evaluation.runner import Job, run_jobs
-
-
-@dataclass
-class PeriodicEvalConfig:
-    """The ``eval`` node of the train config."""
-
-    every: int = 0
-    """Training episodes between evaluations (0: off)."""
-    episodes: int = 10
-    """Episodes per initial-lane setting at each evaluation."""
-    seed: int = 0
-    """Base of the periodic scenes' seeds."""
-    initial_lanes: list[str] = field(default_factory=lambda: list(INITIAL_LANES))
-    """Initial-lane settings to evaluate."""
-    batch: int = 10
-    """Episodes stepped in lockstep (one Q-network forward for all)."""
-
 
 PERIODIC_FIELDS = ("episode", "env_steps", "survival_random", "goal_random", "survival_non_goal",
                    "goal_non_goal", "return_random", "return_non_goal", "steps_random",

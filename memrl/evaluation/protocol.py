@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from memrl.errors import UserError
+
 INITIAL_LANES = ("random", "non_goal")
 """The initial-lane settings of Table III."""
 
@@ -49,7 +51,7 @@ class ProtocolConfig:
     traffic from a pool); constant-speed cars in the paper's evaluation."""
 
 
-class ProtocolError(ValueError):
+class ProtocolError(UserError, ValueError):
     """A protocol value is out of range; the message names the key."""
 
 

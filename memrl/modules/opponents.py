@@ -74,7 +74,8 @@ class LearnedCarController(CarController):
         self._set_networks(nets)
 
     def _set_networks(self, nets: list[QNetwork]) -> None:
-        self.networks = [n.eval() for n in nets]
+        # channels-last weights: the same Q-values, several times faster convs on CPU
+        self.networks = [n.eval().to(memory_format=torch.channels_last) for n in nets]
         params, buffers = stack_module_state(self.networks)  # type: ignore[arg-type]
         self._params = {k: v.detach() for k, v in params.items()}
         self._buffers = buffers
@@ -100,7 +101,9 @@ class LearnedCarController(CarController):
         over the pool's networks when the cars use more than one of them)."""
         self.forward_calls += 1
         if bool((model_index == model_index[0]).all()):  # one network: a plain batched forward
-            return self.networks[int(model_index[0])](stacks)
+            net = self.networks[int(model_index[0])]
+            # in chunks: past ~64 stacks the activations outgrow the caches and each costs more
+            return torch.cat([net(part) for part in stacks.split(64)])
 
         def run(params: dict, buffers: dict, x: torch.Tensor) -> torch.Tensor:
             return functional_call(self._skeleton, (params, buffers), (x,))

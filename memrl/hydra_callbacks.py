@@ -1,0 +1,93 @@
+"""Hydra callbacks of every command (``conf/hydra/default.yaml``).
+
+* :class:`StartChecks`: the command's checks (:data:`memrl.schemas.CHECKS`) before Hydra makes
+  the run folder, so that bad input leaves nothing behind.
+* :class:`SweepFailures`: after a sweep, list the jobs that failed and exit non-zero.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import traceback
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from memrl.errors import ONE_LINE_ENV, USAGE_EXIT, is_user_error, one_line
+
+ERROR_FILE = "error.txt"
+"""Written into a sweep job's folder when the job fails (:func:`memrl.cli.run_task`)."""
+
+SWEEP_FAILED_EXIT = 1
+"""Exit status of a sweep in which some job failed."""
+
+
+def check_config(config: DictConfig) -> None:
+    """Run the checks of the command whose config this is (by config name)."""
+    from memrl.schemas import CHECKS, check_writable
+
+    name = OmegaConf.select(config, "hydra.job.config_name")
+    check = CHECKS.get(str(name))
+    if check is not None:
+        check(config)
+    run_dir = OmegaConf.select(config, "hydra.run.dir")
+    if run_dir is not None:
+        check_writable(run_dir, "paths.output_root")  # before Hydra makes the run folder
+
+
+class StartChecks(Callback):
+    """Check a single run's config before its folder exists (Hydra calls this first)."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        try:
+            check_config(config)
+        except Exception as err:
+            # Hydra turns a callback's exception into a warning and goes on: stop here instead.
+            if is_user_error(err) and os.environ.get(ONE_LINE_ENV) and not config.get("debug"):
+                print(f"error: {one_line(err)}", file=sys.stderr)
+                sys.exit(USAGE_EXIT)
+            traceback.print_exc()
+            sys.exit(USAGE_EXIT if is_user_error(err) else 1)
+
+
+def failed_jobs(sweep_dir: Path) -> tuple[int, list[Path]]:
+    """The number of job folders of a sweep and the error files of those that failed."""
+    # job folders: not hidden ones such as a launcher's own (.submitit)
+    jobs = [p for p in sweep_dir.iterdir() if p.is_dir() and not p.name.startswith(".")] \
+        if sweep_dir.is_dir() else []
+    return len(jobs), sorted((p / ERROR_FILE for p in jobs if (p / ERROR_FILE).is_file()),
+                             key=lambda p: (len(p.parent.name), p.parent.name))
+
+
+def _overrides(job_dir: Path) -> str:
+    """The job's own overrides, from Hydra's record of them (``.hydra/overrides.yaml``)."""
+    file = job_dir / ".hydra" / "overrides.yaml"
+    if not file.is_file():
+        return ""
+    return " ".join(str(o) for o in OmegaConf.load(file))
+
+
+def failure_report(sweep_dir: Path) -> str | None:
+    """Lines naming each failed job, its overrides and its error file (None: all passed)."""
+    total, errors = failed_jobs(sweep_dir)
+    if not errors:
+        return None
+    lines = [f"sweep: {len(errors)} of {total} jobs failed ({sweep_dir}):"]
+    for err in errors:
+        last = err.read_text().strip().splitlines()[-1:] or [""]
+        lines.append(f"  job {err.parent.name} [{_overrides(err.parent)}]: {last[0]} -> {err}")
+    return "\n".join(lines)
+
+
+class SweepFailures(Callback):
+    """After every job of a sweep ran, report the failed ones and exit non-zero."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        report = failure_report(Path(str(config.hydra.sweep.dir)))
+        if report is not None:
+            # Hydra's launchers return the jobs' results but its multirun discards them.
+            print(report, file=sys.stderr)
+            sys.exit(SWEEP_FAILED_EXIT)

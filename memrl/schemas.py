@@ -1,0 +1,470 @@
+"""Typed schemas of the top-level keys of every entry point, and their range checks.
+
+Each ``conf/<command>.yaml`` extends its schema (``defaults: [<command>_schema, ...]``), so a
+value of the wrong type fails at composition, naming the key. The values themselves live in
+the YAML files (``MISSING`` here: the defaults have one place). Ranges and choices are
+declared next to each field (:func:`spec`) and checked by :func:`check_fields`; the
+``check_<command>`` functions add the checks of the groups and of the files a command reads.
+All of it runs before Hydra makes the run folder (``memrl.hydra_callbacks.StartChecks``) and
+again at the start of each typed function. Importing this module does not import torch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+
+from memrl.errors import UserError, config_error
+
+SEED_MAX = 2**32 - 1
+"""numpy seeds are 32-bit unsigned."""
+
+
+def spec(default: Any = MISSING, *, ge: float | None = None, gt: float | None = None,
+         le: float | None = None, lt: float | None = None, choices: tuple | None = None,
+         nonempty: bool = False) -> Any:
+    """A dataclass field with its valid range (for lists: of every element)."""
+    meta = {k: v for k, v in dict(ge=ge, gt=gt, le=le, lt=lt, choices=choices,
+                                  nonempty=nonempty).items() if v is not None and v is not False}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def _valid(meta: Mapping[str, Any]) -> str:
+    parts = [f"{op} {meta[k]}" for k, op in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<"))
+             if k in meta]
+    if "choices" in meta:
+        parts.append("one of " + ", ".join(map(str, meta["choices"])))
+    return " and ".join(parts)
+
+
+def _element_ok(value: Any, meta: Mapping[str, Any]) -> bool:
+    if not meta:
+        return True
+    if "choices" in meta:
+        return value in meta["choices"]
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    return all(((k != "ge" or value >= meta[k]) and (k != "gt" or value > meta[k])
+                and (k != "le" or value <= meta[k]) and (k != "lt" or value < meta[k]))
+               for k in meta)
+
+
+def check_fields(schema: type, node: Mapping[str, Any] | DictConfig, prefix: str = "") -> None:
+    """Check every field of ``schema`` that declares a range, and nested schemas' fields.
+
+    Raises:
+        ConfigError: ``config '<key>': must be <range>, got <value>``.
+    """
+    for f in dataclasses.fields(schema):
+        if f.name not in node:
+            continue
+        key = prefix + f.name
+        sub = f.default_factory if f.default_factory is not dataclasses.MISSING else None
+        meta = f.metadata
+        if not meta and not dataclasses.is_dataclass(sub):
+            continue  # nothing to check (and group nodes may hold Hydra interpolations)
+        value = node[f.name]
+        if isinstance(value, DictConfig | ListConfig):
+            value = OmegaConf.to_container(value, resolve=True)
+        if dataclasses.is_dataclass(sub) and isinstance(value, Mapping):
+            check_fields(sub, value, key + ".")  # type: ignore[arg-type]
+            continue
+        if value is None:
+            continue
+        if isinstance(value, list):
+            if meta.get("nonempty") and not value:
+                raise config_error(key, "needs at least one value")
+            bad = [v for v in value if not _element_ok(v, {k: m for k, m in meta.items()
+                                                            if k != "nonempty"})]
+            if bad:
+                raise config_error(key, f"every value must be {_valid(meta)}, got {value!r}")
+        elif {k for k in meta if k != "nonempty"} and \
+                not _element_ok(value, {k: m for k, m in meta.items() if k != "nonempty"}):
+            raise config_error(key, f"must be {_valid(meta)}, got {value!r}")
+
+
+def check_writable(path: str | os.PathLike, key: str) -> None:
+    """Refuse a folder that cannot be created or written, before anything is written there.
+
+    Tries a probe file in the deepest existing ancestor (``os.access`` says yes to root even
+    on a read-only mount, so it is not asked).
+    """
+    target = Path(path)
+    probe_dir = target
+    while not probe_dir.exists() and probe_dir != probe_dir.parent:
+        probe_dir = probe_dir.parent
+    if not probe_dir.is_dir():
+        raise UserError(f"{target}: cannot be created ({probe_dir} is not a folder); "
+                        f"set {key} to a writable folder")
+    probe = probe_dir / f".memrl-write-test-{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise UserError(f"{target}: cannot write there ({probe_dir}: {err.strerror}); "
+                        f"set {key} to a writable folder") from err
+
+
+# ---------------------------------------------------------------------------------------------
+# train
+
+
+@dataclass
+class TrainSchema:
+    """``conf/train.yaml``: one training run (keys of the groups: their own schemas)."""
+
+    task_name: str = MISSING
+    """Name of the command's output folder (``outputs/<task_name>/...``)."""
+    seed: int = spec(ge=0, le=SEED_MAX)
+    """Seed of the run: weights, exploration, episode scenes."""
+    total_frames: int | None = spec(ge=1)
+    """Env-step budget (null: no limit); checked at episode ends."""
+    total_episodes: int | None = spec(ge=1)
+    """Episode budget (null: no limit)."""
+    log_every: int = spec(ge=1)
+    """Updates between rows of ``updates.csv`` and logger points."""
+    checkpoint_every: int = spec(ge=1)
+    """Episodes between checkpoints."""
+    progress: bool = MISSING
+    """tqdm progress bar."""
+    resume: str | None = MISSING
+    """A run folder to continue from its last checkpoint."""
+    self_play_every: int = spec(ge=0)
+    """Episodes between snapshots of the agent added to the learned cars' pool (0: off)."""
+    debug: bool = MISSING
+    """Full tracebacks for user errors (as ``HYDRA_FULL_ERROR=1``)."""
+    env: Any = MISSING
+    agent: Any = MISSING
+    buffer: Any = MISSING
+    mode: Any = MISSING
+    eval: Any = MISSING
+    logger: Any = None
+    paths: Any = MISSING
+
+
+def _eval_node(cfg: DictConfig) -> None:
+    from memrl.evaluation.periodic_config import PeriodicEvalConfig
+
+    check_fields(PeriodicEvalConfig, cfg.eval, "eval.")
+
+
+def check_env(node: Any, key: str = "env") -> None:
+    """The env node, with the env's own validator (its message names ``env config '<key>'``)."""
+    from memrl.envs.config import validate_env_config
+
+    values = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node)
+    validate_env_config(values)  # type: ignore[arg-type]
+
+
+def check_train(cfg: DictConfig) -> None:
+    """Every value of a train config, and the folders it names (resume, demos_path)."""
+    from memrl.dqn.config import check_train_config
+
+    check_fields(TrainSchema, cfg)
+    check_train_config(cfg)
+    if cfg.self_play_every and cfg.env.opponent.type == "constant":
+        raise config_error("self_play_every", "snapshots join the learned cars' pool; it needs "
+                           "opponent=learned or opponent=mixed (or self_play_every=0)")
+    _eval_node(cfg)
+    check_env(cfg.env)
+    if cfg.resume is not None and not Path(cfg.resume).is_dir():
+        raise config_error("resume", f"no run folder {cfg.resume}")
+    demos = cfg.mode.get("demos_path")
+    if cfg.mode.name in ("A", "B") and demos is not None and not Path(str(demos)).is_dir():
+        raise config_error("mode.demos_path", f"no dataset folder {demos} (a folder made by "
+                           "python -m memrl.record, or null for the scripted example)")
+
+
+# ---------------------------------------------------------------------------------------------
+# record
+
+
+@dataclass
+class RecordSchema:
+    """``conf/record.yaml``: record prior-knowledge datasets."""
+
+    task_name: str = MISSING
+    episodes: int = spec(ge=1)
+    """Episodes to record."""
+    seed: int = spec(ge=0, le=SEED_MAX)
+    """Episode i is reset with seed + i."""
+    keep: str = spec(choices=("stable", "all"))
+    """stable: only episodes with no collision that reached the target lane | all."""
+    tail_steps: int | None = spec(ge=0)
+    """Steps kept after the target lane is reached (null: whole episodes)."""
+    action_noise: float = spec(ge=0.0, lt=1.0)
+    """Probability per step of a random action instead of the driver's."""
+    out: str = MISSING
+    """Dataset folder."""
+    overwrite: bool = MISSING
+    example: bool = MISSING
+    progress: bool = MISSING
+    debug: bool = MISSING
+    env: Any = MISSING
+    demos: Any = MISSING
+    paths: Any = MISSING
+
+
+def check_record(cfg: DictConfig) -> None:
+    check_fields(RecordSchema, cfg)
+    check_env(cfg.env)
+    if cfg.example:
+        if cfg.tail_steps is not None or cfg.action_noise:
+            raise config_error("example", "the example dataset holds whole noiseless episodes; "
+                               "drop tail_steps and action_noise, or record without example=true")
+        if cfg.demos.source != "scripted":
+            raise config_error("example", "the example dataset is made by the scripted driver "
+                               f"(demos=scripted), not demos={cfg.demos.source}")
+        check_writable(cfg.paths.data_dir, "paths.data_dir")
+    else:
+        out = Path(str(cfg.out))
+        if out.exists() and not cfg.overwrite:
+            raise config_error("out", f"{out} exists; set overwrite=true or another out=")
+        check_writable(out.parent, "out")
+
+
+# ---------------------------------------------------------------------------------------------
+# evaluate
+
+
+@dataclass
+class EvaluateSchema:
+    """``conf/evaluate.yaml``: Table III protocol on one or more policies."""
+
+    task_name: str = MISSING
+    workers: int = spec(ge=0)
+    """Processes (0: one per CPU)."""
+    batch: int = spec(ge=1)
+    """Episodes stepped in lockstep per process."""
+    progress: bool = MISSING
+    debug: bool = MISSING
+    env: Any = MISSING
+    protocol: Any = MISSING
+    policy: Any = MISSING
+    paths: Any = MISSING
+
+
+def check_evaluate(cfg: DictConfig) -> None:
+    from memrl.evaluation.protocol import check_protocol
+
+    check_fields(EvaluateSchema, cfg)
+    check_env(cfg.env)
+    check_protocol(cfg.protocol)
+    if OmegaConf.is_missing(cfg.policy, "run") if "run" in cfg.policy.keys() else False:
+        raise config_error("policy.run", "missing: give policy.run=<run or multirun folder>, "
+                           "or another policy (policy=scripted|random|human)")
+    run = cfg.policy.get("run") if "run" in cfg.policy.keys() else None
+    runs = [] if run is None else ([run] if isinstance(run, str) else list(run))
+    for item in runs:
+        if not Path(str(item)).exists():
+            raise config_error("policy.run", f"no such folder {item} (a training run or multirun folder)")
+
+
+# ---------------------------------------------------------------------------------------------
+# report
+
+
+@dataclass
+class RolloutsSchema:
+    """Fig. 7 picture strips and videos."""
+
+    rows: list[str] = MISSING
+    unit: str | None = MISSING
+    initial_lane: str = spec(choices=("random", "non_goal"))
+    count: int = spec(ge=1)
+    pick: str = spec(choices=("success", "first"))
+    steps: list[int] | None = spec(ge=0)
+    scale: float = spec(gt=0)
+    video: bool = MISSING
+    fps: float = spec(gt=0)
+
+
+@dataclass
+class ReportSchema:
+    """``conf/report.yaml``: Table III, Fig. 5 and Fig. 7 from evaluations."""
+
+    task_name: str = MISSING
+    runs: list[str] = spec(nonempty=True)
+    """Folders to search (eval.json, episodes.csv + config.yaml below them)."""
+    evaluate_missing: bool = MISSING
+    workers: int = spec(ge=0)
+    batch: int = spec(ge=1)
+    progress: bool = MISSING
+    confidence: float = spec(gt=0.0, lt=1.0)
+    n_resamples: int = spec(ge=1)
+    bootstrap_seed: int = spec(ge=0, le=SEED_MAX)
+    comparisons: list[list[str]] = MISSING
+    """Pairs [a, b] of Table III rows."""
+    fig5: bool = MISSING
+    smooth: int = spec(ge=1)
+    curve_resamples: int = spec(ge=1)
+    rollouts: RolloutsSchema = field(default_factory=RolloutsSchema)
+    debug: bool = MISSING
+    protocol: Any = MISSING
+    paths: Any = MISSING
+
+
+def check_report(cfg: DictConfig) -> None:
+    from memrl.evaluation.protocol import check_protocol
+
+    if not cfg.runs:
+        raise config_error("runs", "give one or more run, multirun or evaluation folders, "
+                           "e.g. runs=[outputs/train/multiruns/2026-11-22_10-00-00]")
+    check_fields(ReportSchema, cfg)
+    check_protocol(cfg.protocol)
+    for pair in cfg.comparisons:
+        if len(pair) != 2:
+            raise config_error("comparisons", f"expected pairs [a, b] of row labels, got {list(pair)}")
+    for item in cfg.runs:
+        if not Path(str(item)).exists():
+            raise config_error("runs", f"no such folder {item}")
+
+
+# ---------------------------------------------------------------------------------------------
+# deploy
+
+
+@dataclass
+class DeploySchema:
+    """``conf/deploy.yaml``: the agent through PID control of a simulated car."""
+
+    task_name: str = MISSING
+    debug: bool = MISSING
+    env: Any = MISSING
+    deploy: Any = MISSING
+    paths: Any = MISSING
+
+
+def check_deploy(cfg: DictConfig) -> None:
+    from memrl.control.config import DeployConfig, check_deploy_config
+
+    check_fields(DeploySchema, cfg)
+    check_env(cfg.env)
+    merged = OmegaConf.merge(OmegaConf.structured(DeployConfig), cfg.deploy)
+    dcfg = check_deploy_config(OmegaConf.to_object(merged))  # type: ignore[arg-type]
+    if dcfg.policy == "checkpoint" and not Path(str(dcfg.checkpoint)).exists():
+        raise config_error("deploy.checkpoint", f"no such file or run folder {dcfg.checkpoint}")
+
+
+# ---------------------------------------------------------------------------------------------
+# bench
+
+BENCHMARK_NAMES = ("env", "opponents", "learner", "memory", "e2e", "stage1")
+
+
+@dataclass
+class EnvBench:
+    steps: int = spec(ge=1)
+    vehicles_count: int = spec(ge=0)
+    seed: int = spec(ge=0, le=SEED_MAX)
+    torchrl: bool = MISSING
+
+
+@dataclass
+class OpponentsBench:
+    steps: int = spec(ge=1)
+    vehicles_count: int = spec(ge=1)
+    seed: int = spec(ge=0, le=SEED_MAX)
+
+
+@dataclass
+class LearnerBench:
+    batch_sizes: list[int] = spec(ge=1, nonempty=True)
+    seconds: float = spec(gt=0)
+    rounds: int = spec(ge=1)
+    warmup_updates: int = spec(ge=0)
+    buffer_transitions: int = spec(ge=1)
+    ablation: bool = MISSING
+    seed: int = spec(ge=0, le=SEED_MAX)
+
+
+@dataclass
+class MemoryBench:
+    transitions: int = spec(ge=1)
+    naive: bool = MISSING
+    seed: int = spec(ge=0, le=SEED_MAX)
+    timeout_s: float = spec(gt=0)
+    limit_gb: float = spec(gt=0)
+
+
+@dataclass
+class E2EBench:
+    total_frames: int = spec(ge=1)
+    overlap: list[bool] = MISSING
+    learner_seconds: float = spec(gt=0)
+    seed: int = spec(ge=0, le=SEED_MAX)
+    overrides: list[str] = MISSING
+
+
+@dataclass
+class Stage1Bench:
+    updates: int = spec(ge=1)
+    variants: list[Any] = MISSING
+    check_every: int = spec(ge=1)
+    episodes: int = spec(ge=1)
+    drive_every: int = spec(ge=0)
+    data_dir: str | None = MISSING
+    threads: int = spec(ge=0)
+
+
+@dataclass
+class BenchSchema:
+    """``conf/bench.yaml``: side-by-side benchmarks."""
+
+    task_name: str = MISSING
+    benchmarks: list[str] = spec(choices=BENCHMARK_NAMES, nonempty=True)
+    """Sub-benchmarks to run, in order."""
+    env: EnvBench = field(default_factory=EnvBench)
+    opponents: OpponentsBench = field(default_factory=OpponentsBench)
+    learner: LearnerBench = field(default_factory=LearnerBench)
+    memory: MemoryBench = field(default_factory=MemoryBench)
+    e2e: E2EBench = field(default_factory=E2EBench)
+    stage1: Stage1Bench = field(default_factory=Stage1Bench)
+    debug: bool = MISSING
+    paths: Any = MISSING
+
+
+def check_bench(cfg: DictConfig) -> None:
+    check_fields(BenchSchema, cfg)
+
+
+# ---------------------------------------------------------------------------------------------
+# preview
+
+
+@dataclass
+class PreviewSchema:
+    """``conf/preview.yaml``: PNGs of what the agent sees."""
+
+    task_name: str = MISSING
+    seed: int = spec(ge=0, le=SEED_MAX)
+    driver: str = spec(choices=("idle", "random"))
+    steps: list[int] = spec(ge=0, nonempty=True)
+    scale: int = spec(ge=1)
+    debug: bool = MISSING
+    env: Any = MISSING
+    paths: Any = MISSING
+
+
+def check_preview(cfg: DictConfig) -> None:
+    check_fields(PreviewSchema, cfg)
+    check_env(cfg.env)
+
+
+SCHEMAS: dict[str, type] = {"train": TrainSchema, "record": RecordSchema, "evaluate": EvaluateSchema,
+                            "report": ReportSchema, "deploy": DeploySchema, "bench": BenchSchema,
+                            "preview": PreviewSchema}
+"""Config name -> schema of its top-level keys (registered as ``<name>_schema``)."""
+
+CHECKS: dict[str, Callable[[DictConfig], None]] = {
+    "train": check_train, "record": check_record, "evaluate": check_evaluate,
+    "report": check_report, "deploy": check_deploy, "bench": check_bench, "preview": check_preview}
+"""Config name -> the check of everything that command reads."""

@@ -1,0 +1,334 @@
+"""Bad input is refused at start with one line naming the key or file, and leaves nothing behind.
+
+The table calls each command's typed function on the real composed config (as the
+``@hydra.main`` does); a few rows run the real command line to prove the one-line output, the
+exit status and that Hydra's run folder is not left behind.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra.errors import HydraException
+from omegaconf.errors import OmegaConfBaseException
+
+from memrl.errors import USAGE_EXIT, exit_status, is_user_error, one_line
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN_MARKERS = ("config.yaml", "summary.json", "checkpoints", "episodes.csv", "metadata.json",
+               "transitions", "eval.json", "bench.json", "deploy.json", "observations.png",
+               "table3.md", "provenance.json", ".hydra")
+"""Names that make a folder look like a run, an evaluation or a dataset."""
+
+
+def commands():
+    from memrl.bench import bench
+    from memrl.deploy import deploy
+    from memrl.evaluate import evaluate
+    from memrl.preview import preview
+    from memrl.record import record
+    from memrl.report import report
+    from memrl.train import train
+
+    return {"train": lambda c, out: train(c, out), "record": lambda c, out: record(c),
+            "evaluate": lambda c, out: evaluate(c, out), "report": lambda c, out: report(c, out),
+            "deploy": lambda c, out: deploy(c, out), "bench": lambda c, out: bench(c, out),
+            "preview": lambda c, out: preview(c, out)}
+
+
+def left_behind(root: Path) -> list[Path]:
+    return [p for p in root.rglob("*") if p.name in RUN_MARKERS]
+
+
+# (command, overrides, what the message must name); one row per top-level key of each command
+# and per defect of the hardening issue that a config or a missing file triggers.
+ROWS = [
+    # train: every top-level key
+    ("train", ["seed=-1"], "seed"),
+    ("train", ["seed=4294967296"], "seed"),
+    ("train", ["seed=abc"], "seed"),
+    ("train", ["total_frames=-5"], "total_frames"),
+    ("train", ["total_frames=0"], "total_frames"),
+    ("train", ["total_episodes=0"], "total_episodes"),
+    ("train", ["total_episodes=null", "total_frames=null"], "total_frames"),
+    ("train", ["log_every=0"], "log_every"),
+    ("train", ["checkpoint_every=0"], "checkpoint_every"),
+    ("train", ["progress=maybe"], "progress"),
+    ("train", ["resume=/nonexistent/run"], "resume"),
+    ("train", ["self_play_every=-1"], "self_play_every"),
+    ("train", ["self_play_every=5"], "self_play_every"),
+    ("train", ["debug=maybe"], "debug"),
+    ("train", ["seeed=1"], "seeed"),
+    # train: the groups
+    ("train", ["buffer.capacity=-1"], "buffer.capacity"),
+    ("train", ["agent.lr=-1"], "agent.lr"),
+    ("train", ["agent.batch_size=0"], "agent.batch_size"),
+    ("train", ["eval.every=-1"], "eval.every"),
+    ("train", ["eval.episodes=0"], "eval.episodes"),
+    ("train", ["eval.initial_lanes=[left]"], "eval.initial_lanes"),
+    ("train", ["env.vehicles_count=[5,0]"], "vehicles_count"),
+    ("train", ["env.lanes_count=1"], "lanes_count"),
+    ("train", ["env.duration=0"], "duration"),
+    ("train", ["opponent=learned"], "opponent.pool"),
+    ("train", ["+mode=B", "mode.demos_path=/nonexistent/demos"], "mode.demos_path"),
+    ("train", ["+mode=A", "mode.demo_fraction=1.5"], "mode.demo_fraction"),
+    # record
+    ("record", ["episodes=0"], "episodes"),
+    ("record", ["seed=-3"], "seed"),
+    ("record", ["keep=some"], "keep"),
+    ("record", ["tail_steps=-1"], "tail_steps"),
+    ("record", ["action_noise=1.5"], "action_noise"),
+    ("record", ["overwrite=perhaps"], "overwrite"),
+    ("record", ["example=true", "tail_steps=5"], "example"),
+    ("record", ["progress=maybe"], "progress"),
+    ("record", ["debug=maybe"], "debug"),
+    ("record", ["env.lanes_count=1"], "lanes_count"),
+    # evaluate
+    ("evaluate", ["policy=scripted", "workers=-1"], "workers"),
+    ("evaluate", ["policy=scripted", "batch=0"], "batch"),
+    ("evaluate", ["policy=scripted", "progress=maybe"], "progress"),
+    ("evaluate", [], "policy.run"),
+    ("evaluate", ["policy=scripted", "debug=maybe"], "debug"),
+    ("evaluate", ["policy.run=/nonexistent/run"], "policy.run"),
+    ("evaluate", ["policy=scripted", "protocol.episodes=0"], "episodes"),
+    ("evaluate", ["policy=scripted", "env.vehicles_count=-1"], "vehicles_count"),
+    # report
+    ("report", [], "runs"),
+    ("report", ["runs=[/nonexistent/sweep]"], "runs"),
+    ("report", ["runs=[.]", "workers=-1"], "workers"),
+    ("report", ["runs=[.]", "batch=0"], "batch"),
+    ("report", ["runs=[.]", "confidence=1.5"], "confidence"),
+    ("report", ["runs=[.]", "n_resamples=0"], "n_resamples"),
+    ("report", ["runs=[.]", "bootstrap_seed=-1"], "bootstrap_seed"),
+    ("report", ["runs=[.]", "comparisons=[[B]]"], "comparisons"),
+    ("report", ["runs=[.]", "smooth=0"], "smooth"),
+    ("report", ["runs=[.]", "curve_resamples=0"], "curve_resamples"),
+    ("report", ["runs=[.]", "rollouts.count=0"], "rollouts.count"),
+    ("report", ["runs=[.]", "rollouts.initial_lane=left"], "rollouts.initial_lane"),
+    ("report", ["runs=[.]", "rollouts.pick=best"], "rollouts.pick"),
+    ("report", ["runs=[.]", "rollouts.steps=[-1]"], "rollouts.steps"),
+    ("report", ["runs=[.]", "rollouts.fps=0"], "rollouts.fps"),
+    ("report", ["runs=[.]", "fig5=sometimes"], "fig5"),
+    ("report", ["runs=[.]", "evaluate_missing=often"], "evaluate_missing"),
+    ("report", ["runs=[.]", "progress=maybe"], "progress"),
+    ("report", ["runs=[.]", "debug=maybe"], "debug"),
+    # deploy
+    ("deploy", ["deploy.episodes=0"], "episodes"),
+    ("deploy", ["deploy.policy=fast"], "policy"),
+    ("deploy", ["deploy.policy=checkpoint", "deploy.checkpoint=/nonexistent/final.pt"],
+     "deploy.checkpoint"),
+    ("deploy", ["deploy.plot_episode=99"], "plot_episode"),
+    ("deploy", ["env.initial_lane=left"], "initial_lane"),
+    ("deploy", ["debug=maybe"], "debug"),
+    # bench
+    ("bench", ["benchmarks=[nope]"], "benchmarks"),
+    ("bench", ["benchmarks=[]"], "benchmarks"),
+    ("bench", ["env.steps=0"], "env.steps"),
+    ("bench", ["opponents.vehicles_count=0"], "opponents.vehicles_count"),
+    ("bench", ["learner.batch_sizes=[0]"], "learner.batch_sizes"),
+    ("bench", ["learner.seconds=0"], "learner.seconds"),
+    ("bench", ["memory.transitions=0"], "memory.transitions"),
+    ("bench", ["e2e.total_frames=0"], "e2e.total_frames"),
+    ("bench", ["stage1.updates=0"], "stage1.updates"),
+    ("bench", ["debug=maybe"], "debug"),
+    # preview
+    ("preview", ["seed=-1"], "seed"),
+    ("preview", ["driver=fast"], "driver"),
+    ("preview", ["steps=[]"], "steps"),
+    ("preview", ["steps=[-1]"], "steps"),
+    ("preview", ["scale=0"], "scale"),
+    ("preview", ["env.bev.width=4"], "bev.width"),
+    ("preview", ["debug=maybe"], "debug"),
+]
+
+
+@pytest.fixture
+def project(tmp_path, monkeypatch):
+    """A temporary project root (``MEMRL_ROOT``) and working directory."""
+    monkeypatch.setenv("MEMRL_ROOT", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def refusal(compose_cfg, command: str, overrides: list[str], out: Path) -> BaseException:
+    """The error that ``command`` raises for ``overrides``, composing as Hydra does."""
+    try:
+        cfg = compose_cfg(command, overrides)
+        commands()[command](cfg, out)
+    except Exception as err:  # the assertions below judge it
+        return err
+    raise AssertionError(f"{command} {overrides} was accepted")
+
+
+def assert_one_line_naming(err: BaseException, name: str) -> str:
+    assert is_user_error(err), f"{type(err).__name__} would print a traceback: {err}"
+    assert exit_status(err) == USAGE_EXIT
+    message = one_line(err)
+    assert "\n" not in message and name in message, message
+    return message
+
+
+@pytest.mark.parametrize(("command", "overrides", "name"), ROWS,
+                         ids=[f"{c}:{' '.join(o) or 'defaults'}" for c, o, _ in ROWS])
+def test_bad_value_is_refused_at_start(compose_cfg, project, command, overrides, name):
+    out = project / "outputs" / command / "runs" / "now"
+    err = refusal(compose_cfg, command, overrides, out)
+    assert_one_line_naming(err, name)
+    assert not out.exists() and left_behind(project) == []
+
+
+def test_the_table_covers_every_top_level_key(compose_cfg):
+    """One row per top-level key of every command (keys that take any string excepted)."""
+    from memrl.schemas import SCHEMAS
+
+    free = {"task_name", "out", "env", "agent", "buffer", "mode", "eval", "logger", "paths", "demos",
+            "protocol", "policy", "deploy", "memory", "e2e", "stage1", "learner", "opponents"}
+    for command in SCHEMAS:
+        keys = set(compose_cfg(command).keys()) - free
+        named = {o.split("=")[0].split(".")[0].lstrip("+") for c, ovs, _ in ROWS if c == command
+                 for o in ovs} | {n.split(".")[0] for c, _, n in ROWS if c == command}
+        assert keys <= named, (command, keys - named)
+    assert len(ROWS) >= 40
+
+
+@pytest.mark.parametrize("action", [-1, 9, 2.5, "3", True, np.float32(2.0), torch.tensor(2.0),
+                                    np.array([1, 2])], ids=repr)
+def test_gym_env_refuses_actions_outside_0_to_8(action):
+    from memrl.envs.lane_change import LaneChangeEnv
+
+    env = LaneChangeEnv(config={"vehicles_count": 0})
+    env.reset(seed=0)
+    before = (env.vehicle.speed, env.vehicle.curvature)
+    with pytest.raises(ValueError) as info:
+        env.step(action)
+    message = assert_one_line_naming(info.value, repr(action))
+    assert "0..8" in message
+    assert (env.vehicle.speed, env.vehicle.curvature) == before  # nothing was executed
+
+
+@pytest.mark.parametrize("action", [0, 8, np.int64(3), np.uint8(5), torch.tensor(2),
+                                    np.array(4), torch.tensor([7])], ids=repr)
+def test_gym_env_accepts_integer_scalars(action):
+    from memrl.envs.lane_change import LaneChangeEnv
+    from memrl.envs.vehicles import ACTIONS
+
+    env = LaneChangeEnv(config={"vehicles_count": 0})
+    env.reset(seed=0)
+    speed = env.vehicle.speed
+    env.step(action)
+    ds, _ = ACTIONS[int(action.item() if hasattr(action, "item") else action)]
+    assert env.vehicle.speed == pytest.approx(speed + 0.1 * ds)
+
+
+def test_unwritable_data_folder_is_found_before_the_example_is_recorded(compose_cfg, project):
+    blocker = project / "blocker"
+    blocker.write_text("a file where the data folder should go\n")
+    out = project / "outputs" / "train" / "runs" / "now"
+    err = refusal(compose_cfg, "train", ["+mode=A", f"paths.data_dir={blocker}/data"], out)
+    assert_one_line_naming(err, "paths.data_dir")
+    assert not out.exists() and left_behind(project) == []
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_data_folder_is_found_before_the_example_is_recorded(compose_cfg, project):
+    data = project / "data"
+    data.mkdir()
+    data.chmod(0o555)
+    try:
+        err = refusal(compose_cfg, "train", ["+mode=A", f"paths.data_dir={data}"],
+                      project / "run")
+        assert_one_line_naming(err, str(data))
+    finally:
+        data.chmod(0o755)
+
+
+def test_full_disk_during_a_checkpoint_names_the_folder(tmp_path, monkeypatch):
+    from memrl.dqn import checkpoint as ckpt
+
+    def short_write(obj, f, *args, **kwargs):
+        raise RuntimeError("[enforce fail at inline_container.cc:778] . PytorchStreamWriter "
+                           "failed writing file data/0: file write failed")
+
+    monkeypatch.setattr(torch, "save", short_write)
+    with pytest.raises(ckpt.CheckpointError) as info:
+        ckpt.save(tmp_path / "checkpoints" / "last", {"x": 1}, None)
+    message = assert_one_line_naming(info.value, str(tmp_path / "checkpoints" / "last.tmp"))
+    assert "MB free" in message and "file write failed" in message
+    assert not (tmp_path / "checkpoints" / "last.tmp").exists()
+    assert not (tmp_path / "checkpoints" / "last").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# the real command line
+
+
+def cli(args: list[str], root: Path, **env: str) -> subprocess.CompletedProcess:
+    environ = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    environ.update(MEMRL_ROOT=str(root), SDL_VIDEODRIVER="dummy", **env)
+    return subprocess.run([sys.executable, "-m", *args], cwd=ROOT, env=environ,
+                          capture_output=True, text=True, timeout=300)
+
+
+CLI_ROWS = [
+    (["memrl.train", "seed=-1"], "'seed'"),
+    (["memrl.train", "seed=abc"], "'seed'"),
+    (["memrl.train", "seeed=1"], "seeed"),
+    (["memrl.train", "env.vehicles_count=[5,0]"], "vehicles_count"),
+    (["memrl.train", "+mode=B", "mode.demos_path=/nonexistent/demos"], "mode.demos_path"),
+    (["memrl.record", "episodes=0"], "'episodes'"),
+    (["memrl.bench", "nope"], "benchmarks"),
+]
+
+
+@pytest.mark.parametrize(("args", "name"), CLI_ROWS, ids=[" ".join(a) for a, _ in CLI_ROWS])
+def test_command_line_prints_one_line_and_leaves_no_run_folder(tmp_path, args, name):
+    proc = cli(args, tmp_path)
+    _assert_refused(proc, tmp_path, name)
+
+
+def test_unwritable_output_folder_is_refused_before_hydra_writes(tmp_path):
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file where the outputs should go\n")
+    proc = cli(["memrl.preview", f"paths.output_root={blocker}/outputs"], tmp_path)
+    _assert_refused(proc, tmp_path, "paths.output_root")
+
+
+def _assert_refused(proc: subprocess.CompletedProcess, tmp_path: Path, name: str) -> None:
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and name in lines[0], proc.stderr
+    assert left_behind(tmp_path) == [] and not (tmp_path / "outputs" / "train" / "runs").exists()
+
+
+def test_a_missing_dataset_leaves_no_run_folder_behind(tmp_path):
+    """A data error found after Hydra made its folder: the folder goes too."""
+    dataset = tmp_path / "not_a_dataset"
+    dataset.mkdir()
+    proc = cli(["memrl.train", "+mode=A", f"mode.demos_path={dataset}"], tmp_path)
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and str(dataset) in lines[0], proc.stderr
+    runs = tmp_path / "outputs" / "train" / "runs"
+    assert not runs.exists() or list(runs.iterdir()) == []
+
+
+@pytest.mark.parametrize("switch", ["HYDRA_FULL_ERROR", "debug=true"])
+def test_full_traceback_on_request(tmp_path, switch):
+    env = {"HYDRA_FULL_ERROR": "1"} if switch == "HYDRA_FULL_ERROR" else {}
+    args = ["memrl.train", "seed=-1", *([switch] if "=" in switch else [])]
+    proc = cli(args, tmp_path, **env)
+    assert proc.returncode != 0
+    assert "Traceback (most recent call last)" in proc.stderr and "'seed'" in proc.stderr
+
+
+def test_user_errors_and_bugs_are_told_apart():
+    assert is_user_error(OmegaConfBaseException("x")) and is_user_error(HydraException("x"))
+    assert is_user_error(FileNotFoundError(2, "No such file or directory", "/a/b"))
+    assert "/a/b" in one_line(FileNotFoundError(2, "No such file or directory", "/a/b"))
+    assert not is_user_error(ZeroDivisionError("bug")) and exit_status(KeyError("k")) == 1
