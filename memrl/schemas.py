@@ -357,7 +357,7 @@ def check_deploy(cfg: DictConfig) -> None:
 # ---------------------------------------------------------------------------------------------
 # bench
 
-BENCHMARK_NAMES = ("env", "opponents", "learner", "memory", "e2e", "stage1")
+BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1")
 
 
 @dataclass
@@ -416,6 +416,20 @@ class Stage1Bench:
 
 
 @dataclass
+class BatchedBench:
+    sizes: list[int] = spec(ge=1, nonempty=True)
+    gpu_sizes: list[int] = spec(ge=1)
+    seconds: float = spec(gt=0)
+    reference_steps: int = spec(ge=1)
+    vehicles_count: int = spec(ge=0)
+    learned: bool = MISSING
+    learned_sizes: list[int] = spec(ge=1)
+    threads: int = spec(ge=1)
+    device: str = MISSING
+    seed: int = spec(ge=0, le=SEED_MAX)
+
+
+@dataclass
 class BenchSchema:
     """``conf/bench.yaml``: side-by-side benchmarks."""
 
@@ -424,6 +438,7 @@ class BenchSchema:
     """Sub-benchmarks to run, in order."""
     env: EnvBench = field(default_factory=EnvBench)
     opponents: OpponentsBench = field(default_factory=OpponentsBench)
+    batched: BatchedBench = field(default_factory=BatchedBench)
     learner: LearnerBench = field(default_factory=LearnerBench)
     memory: MemoryBench = field(default_factory=MemoryBench)
     e2e: E2EBench = field(default_factory=E2EBench)
