@@ -97,8 +97,8 @@ def pool(tmp_path_factory):
 @pytest.mark.parametrize("kind", ["learned", "mixed"])
 def test_learned_cars_act_as_the_reference_controller_does(pool, kind):
     config = {"opponent": {"type": kind, "pool": pool, "epsilon": 0.1}, "vehicles_count": 4}
-    tally = compare(config, list(range(4)), 60, random_actions(0.3))
-    assert tally.steps == 4 * 60
+    tally = compare(config, list(range(6)), 120, random_actions(0.3))
+    assert tally.steps == 6 * 120
 
 
 def test_learned_cars_of_all_envs_share_one_forward_pass_per_step(pool):
