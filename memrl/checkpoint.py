@@ -48,17 +48,28 @@ def load_qnet(path: str | Path) -> tuple[QNetwork, dict[str, Any]]:
 
 
 class GreedyQPolicy(DrivingPolicy):
-    """Acts with argmax Q on the stacked pixels (epsilon-greedy when ``epsilon > 0``)."""
+    """Acts with argmax Q on the stacked pixels (epsilon-greedy when ``epsilon > 0``).
+
+    ``policy.act(obs)`` takes a gym observation of ``gym.make("memrl/LaneChange-v0",
+    config={"frame_stack": 4})`` directly; ``policy.act(env, pixels)`` is the
+    :class:`DrivingPolicy` form that memrl's own runners use.
+    """
 
     def __init__(self, net: QNetwork, epsilon: float = 0.0, seed: int = 0) -> None:
         self.net, self.epsilon = net, float(epsilon)
         self.rng = np.random.default_rng(seed)
 
     @torch.no_grad()
-    def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
+    def act(self, env: LaneChangeEnv | np.ndarray, pixels: np.ndarray | None = None) -> int:
+        obs = np.asarray(env if pixels is None else pixels)
+        frames = self.net.features[0].in_channels
+        if obs.dtype != np.uint8 or obs.shape[-3:] != (frames, 84, 84):
+            raise ValueError(f"the policy takes uint8 observations of shape ({frames}, 84, 84), got "
+                             f"{obs.dtype} {tuple(obs.shape)}: make the env with config={{'frame_stack': "
+                             f"{frames}}}")
         if self.epsilon > 0 and self.rng.random() < self.epsilon:
             return int(self.rng.integers(N_ACTIONS))
-        return int(self.net(torch.as_tensor(pixels)).argmax(-1))
+        return int(self.net(torch.as_tensor(obs)).argmax(-1))
 
 
 def load_policy(path: str, epsilon: float = 0.0) -> DrivingPolicy:

@@ -23,7 +23,7 @@ RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_
 LEGACY_VALUES: dict[str, Any] = {
     "agent": {"precision": "float32", "overlap": False},
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
-            "initial_curvature": 0.0},
+            "initial_curvature": 0.0, "frame_stack": 1},
     "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
                         "keep_best": True}},
 }

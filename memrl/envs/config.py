@@ -155,6 +155,10 @@ class LaneChangeConfig:
     """The agent's bird's-eye-view observation."""
     scene: SceneRenderConfig = field(default_factory=SceneRenderConfig)
     """The full-scene picture for people (preview, videos)."""
+    frame_stack: int = 1
+    """Frames in the gym observation ``[frame_stack, H, W]`` (oldest first; after a reset the
+    first frame repeated): 4 is the paper's observation, for gym users (SB3, CleanRL). The
+    TorchRL pipeline (``make_env``) stacks frames itself and leaves this at 1."""
 
 
 class EnvConfigError(UserError, ValueError):
@@ -255,6 +259,9 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
         for key in ("lateral_scale", "longitudinal_scale"):
             _check(getattr(sub, key) > 0, f"{name}.{key}", "must be > 0 m/px")
     _check(cfg.bev.path_length >= 0, "bev.path_length", "must be >= 0 m (0: no path drawn)")
+    stack = cfg.frame_stack
+    _check(isinstance(stack, int) and not isinstance(stack, bool) and stack >= 1,
+           "frame_stack", f"need an int >= 1, got {cfg.frame_stack!r}")
     return cfg
 
 

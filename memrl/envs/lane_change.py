@@ -53,9 +53,11 @@ class CurvatureSpeedAction(ActionType):
 
 
 class BEVObservation(ObservationType):
-    """Bird's-eye-view crop centred on the observer car, channel-first uint8 ``[C, H, W]``.
+    """Bird's-eye-view crop centred on the observer car, channel-first uint8 ``[S * C, H, W]``.
 
-    C is 1 (grayscale levels drawn directly, the default) or 3 (RGB), see ``bev.grayscale``.
+    C is 1 (grayscale levels drawn directly, the default) or 3 (RGB), see ``bev.grayscale``;
+    S is ``frame_stack`` (the last S frames, oldest first; after a reset the first frame
+    repeated, as TorchRL's ``CatFrames``). ``frame_stack=4`` is the paper's observation.
     """
 
     def __init__(self, env: LaneChangeEnv) -> None:
@@ -63,12 +65,14 @@ class BEVObservation(ObservationType):
         self.env: LaneChangeEnv = env
 
     def space(self) -> spaces.Box:
-        bev = self.env.cfg.bev
-        return spaces.Box(0, 255, (1 if bev.grayscale else 3, bev.height, bev.width), np.uint8)
+        cfg = self.env.cfg
+        channels = (1 if cfg.bev.grayscale else 3) * cfg.frame_stack
+        return spaces.Box(0, 255, (channels, cfg.bev.height, cfg.bev.width), np.uint8)
 
     def observe(self) -> np.ndarray:
         car = self.observer_vehicle
-        return self.env.observe_from(car, car.target_lane)
+        frame = self.env.observe_from(car, car.target_lane)
+        return self.env.stack_frame(frame) if self.env.cfg.frame_stack > 1 else frame
 
 
 class LaneChangeEnv(AbstractEnv):
@@ -94,6 +98,9 @@ class LaneChangeEnv(AbstractEnv):
         self._opponents: Opponents | None = None
         self._scene: BEVRenderer | None = None
         self._components: dict[str, float] | None = None
+        self._episode = 0
+        self._stack: np.ndarray | None = None
+        self._stack_key: tuple[int, int] | None = None
         super().__init__(config, render_mode)
 
     @classmethod
@@ -126,6 +133,7 @@ class LaneChangeEnv(AbstractEnv):
         if self._opponents is None:  # built once per env: a learned pool is loaded once
             self._opponents = make_opponents(cfg.opponent)
         scene = sample_scene(cfg, self.np_random, self._opponents.pool_size)
+        self._episode += 1
         self.target_lane = scene.target_lane
         agent = self._car_from(scene.agent, "agent")
         agent.target_lane = self.target_lane
@@ -318,6 +326,16 @@ class LaneChangeEnv(AbstractEnv):
         """
         img = self.bev.render(car.position, self.road.vehicles, target_lane, ego=car)
         return img[None] if img.ndim == 2 else np.ascontiguousarray(img.transpose(2, 0, 1))
+
+    def stack_frame(self, frame: np.ndarray) -> np.ndarray:
+        """The last ``frame_stack`` frames with ``frame`` the newest (pushed once per step)."""
+        key = (self._episode, self.steps)
+        if self._stack is None or self._stack_key is None or key[0] != self._stack_key[0]:
+            self._stack = np.concatenate([frame] * self.cfg.frame_stack)  # a new episode
+        elif key != self._stack_key:
+            self._stack = np.concatenate([self._stack[frame.shape[0]:], frame])
+        self._stack_key = key
+        return self._stack
 
     def render(self) -> np.ndarray | None:
         """Full-scene RGB picture ``(H, W, 3)`` centred on the agent (``render_mode='rgb_array'``)."""

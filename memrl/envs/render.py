@@ -184,7 +184,8 @@ class BEVRenderer:
         else:
             gray = gray_palette(dict(zip(LABELS, shades, strict=True)))
             table = np.array([gray[n] for n in LABELS], dtype=np.uint8)
-        self.palette = {n: (tuple(shades[i]) if channels == 3 else int(table[i])) for i, n in enumerate(LABELS)}
+        self.palette = {n: (tuple(shades[i]) if channels == 3 else int(table[i]))
+                        for i, n in enumerate(LABELS)}
         h, w = view.height, view.width
         half_diag = 0.5 * math.hypot(self.car_length, self.car_width)
         # largest window a car needs at any heading [px] (fixed shapes on accelerators)
@@ -200,12 +201,14 @@ class BEVRenderer:
             "cols": np.arange(max(w, self._win_cols), dtype=np.int64),
             "rows": np.arange(h, dtype=np.int64)[None, :],
             "dividers": (np.arange(1, lanes_count) - 0.5) * lane_width,
-            "div_k": np.arange(math.ceil(line / view.lateral_scale) + 1, dtype=np.float64),  # cols per divider
+            # columns per divider band
+            "div_k": np.arange(math.ceil(line / view.lateral_scale) + 1, dtype=np.float64),
             # dashes that can show in a crop: 2 * half_span of road plus a period on each side
             "dash_k": np.arange(math.ceil(2 * self._half_span / (2 * dash_length)) + 3, dtype=np.float64),
             "path_s": np.linspace(0.0, path_length, max(2, math.ceil(path_length / step) + 1)),
         }
-        self._consts = {NUMPY: consts, TORCH: {k: torch.from_numpy(v).to(self.device) for k, v in consts.items()}}
+        on_device = {k: torch.from_numpy(v).to(self.device) for k, v in consts.items()}
+        self._consts = {NUMPY: consts, TORCH: on_device}
         self.table = self._consts[TORCH]["table"]
 
     # ------------------------------------------------------------------------ batched
@@ -245,7 +248,8 @@ class BEVRenderer:
             col = x_.i64(x_.floor(0.5 * v.width + rel[..., 1] / v.lateral_scale))
             row = x_.i64(x_.floor(0.5 * v.height - rel[..., 0] / v.longitudinal_scale))
             ok = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width)
-            flat[x_.where(ok, base[:, None] + row * v.width + col, flat.shape[0] - 1)] = values[LABEL["agent"]]
+            index = x_.where(ok, base[:, None] + row * v.width + col, flat.shape[0] - 1)
+            flat[index] = values[LABEL["agent"]]
 
     def _arange(self, x_: _Ops, n: int) -> Any:
         return torch.arange(n, device=self.device) if x_.is_torch else np.arange(n)
@@ -274,7 +278,8 @@ class BEVRenderer:
         line = max(v.lateral_scale, 0.15)  # markings: at least 1 px, at most 0.15 m wide
         col = x_.where(band(left, left + line) | band(right - line, right), values[LABEL["marking"]], col)
         n_views = len(center)
-        flat[start: start + n_views * v.height * v.width].reshape(n_views, v.height, v.width)[:] = col[:, None, :]
+        pictures = flat[start: start + n_views * v.height * v.width].reshape(n_views, v.height, v.width)
+        pictures[:] = col[:, None, :]
         if n < 2:
             return
         # dash k covers [s_k, s_k + L] along the road, s_k = first + k * period: rows [r0, r1)
@@ -283,8 +288,9 @@ class BEVRenderer:
         first = x_.floor((x_top - 2 * self._half_span) / period) * period - period
         starts = first + k["dash_k"] * period  # [V, K]
         cx, lon = center[:, 0:1], v.longitudinal_scale
-        r0 = x_.i64(x_.clip(x_.ceil(0.5 * v.height - (starts + self.dash_length - cx) / lon - 0.5), 0, v.height))
-        r1 = x_.i64(x_.clip(x_.ceil(0.5 * v.height - (starts - cx) / lon - 0.5), 0, v.height))
+        r0 = x_.ceil(0.5 * v.height - (starts + self.dash_length - cx) / lon - 0.5)
+        r1 = x_.ceil(0.5 * v.height - (starts - cx) / lon - 0.5)
+        r0, r1 = x_.i64(x_.clip(r0, 0, v.height)), x_.i64(x_.clip(r1, 0, v.height))
         # +1 where a dash starts, -1 where it ends, summed down the picture
         count = x_.zeros((n_views, v.height + 1), like=r0)
         views = self._arange(x_, n_views)[:, None] + r0 * 0
@@ -381,7 +387,8 @@ class BEVRenderer:
         if ego is not None and self.path_length > 0:
             path = np.array([[ego.position[0], ego.position[1], ego.heading, ego.curvature]])
         img = self.render_batch(np.array([[float(center[0]), float(center[1])]]),
-                                np.array([-1 if target_lane is None else int(target_lane)]), cars, labels, path)
+                                np.array([-1 if target_lane is None else int(target_lane)]), cars, labels,
+                                path)
         return img[0]
 
     def to_pixels(self, center: np.ndarray, points: np.ndarray) -> np.ndarray:

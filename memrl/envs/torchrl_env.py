@@ -69,7 +69,7 @@ def make_env(
         device: the batched engine's device (``auto``, ``cpu``, ``cuda``, ``cuda:K``).
     """
     register_envs()
-    values = env_kwargs(env_cfg)
+    values = {**env_kwargs(env_cfg), "frame_stack": 1}  # CatFrames / the engine's ring stack
     if num_envs is not None:
         if render_mode is not None:
             raise ValueError("render_mode: full-scene pictures come from the single env (num_envs=None)")

@@ -20,7 +20,8 @@ from memrl.envs.batched import REWARD_NAMES, BatchedLaneChange
 
 
 class LaneChangeVectorEnv(VectorEnv):
-    """N lane-change envs as one gymnasium ``VectorEnv`` (observations ``[N, 1, H, W]`` uint8).
+    """N lane-change envs as one gymnasium ``VectorEnv`` (observations ``[N, frame_stack, H, W]``
+    uint8, as the single env's).
 
     Args:
         num_envs: N >= 1.
@@ -36,10 +37,12 @@ class LaneChangeVectorEnv(VectorEnv):
         if render_mode is not None:
             raise ValueError(f"render_mode={render_mode!r}: the vector env draws no scene pictures "
                              "(use gym.make for render_mode='rgb_array')")
-        self.engine = BatchedLaneChange(config, num_envs, device, frame_stack=1)
+        stack = int((config or {}).get("frame_stack", 1))
+        self.engine = BatchedLaneChange(config, num_envs, device, frame_stack=max(stack, 1))
         self.num_envs = self.engine.num_envs
         b = self.engine.cfg.bev
-        self.single_observation_space = spaces.Box(0, 255, (1, b.height, b.width), np.uint8)
+        shape = (self.engine.frame_stack, b.height, b.width)
+        self.single_observation_space = spaces.Box(0, 255, shape, np.uint8)
         self.single_action_space = spaces.Discrete(9)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
@@ -80,7 +83,9 @@ class LaneChangeVectorEnv(VectorEnv):
         return self._obs(), reward, terminated, truncated, self._info()
 
     def _obs(self) -> np.ndarray:
-        return self.engine.newest_frame()[:, None].cpu().numpy()
+        if self.engine.frame_stack == 1:
+            return self.engine.newest_frame()[:, None].cpu().numpy()
+        return self.engine.observation().cpu().numpy()
 
     def _info(self) -> dict[str, Any]:
         """The single env's info keys, batched (with gymnasium's ``_key`` masks)."""
