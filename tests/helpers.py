@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from tensordict import TensorDictBase
 
+from memrl.checkpoint import save_qnet
 from memrl.data.transitions import to_transitions
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import IDLE
 from memrl.modules.policy import DrivingPolicy, PolicyModule
+from memrl.modules.qnet import QNetwork
 
 TINY = [
     "+experiment=smoke", "total_frames=null", "total_episodes=3", "env.duration=30",
@@ -45,3 +49,16 @@ def empty_road(**config) -> LaneChangeEnv:
     env.reset(seed=0)
     env.remove_others()
     return env
+
+
+def save_pool(root: Path, seeds: tuple[int, ...] = (1, 2), head_scale: float = 1.0) -> list[str]:
+    """``final.pt`` files of freshly initialised Q-networks (one per seed), for learned cars;
+    ``head_scale`` multiplies the last layer's weights (spread Q-values: no near-ties)."""
+    paths = []
+    for seed in seeds:
+        torch.manual_seed(seed)
+        net = QNetwork()
+        with torch.no_grad():
+            net.head[-1].weight.mul_(head_scale)
+        paths.append(str(save_qnet(root / f"agent{seed}" / "final.pt", net, {})))
+    return paths

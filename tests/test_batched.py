@@ -10,16 +10,15 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from memrl.checkpoint import save_qnet
 from memrl.envs import ENV_ID
 from memrl.envs.batched import BatchedEnvError, BatchedLaneChange, resolve_device
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.render import LABEL, PALETTE, gray_palette
 from memrl.envs.scene import sample_scene
 from memrl.envs.torchrl_env import make_env
-from memrl.modules.qnet import QNetwork
 from memrl.modules.scripted import ScriptedDriver
 from tests.batched_helpers import car_states, compare, random_actions
+from tests.helpers import save_pool
 
 NON_GOAL = {"initial_lane": "non_goal", "vehicles_count": [0, 5]}
 
@@ -83,15 +82,8 @@ def test_path_cue_and_off_nominal_starts_match_the_reference():
 
 @pytest.fixture(scope="module")
 def pool(tmp_path_factory):
-    root = tmp_path_factory.mktemp("pool")
-    paths = []
-    for seed in (1, 2):
-        torch.manual_seed(seed)
-        net = QNetwork()
-        with torch.no_grad():  # spread the Q-values: no near-ties that batch order could flip
-            net.head[-1].weight.mul_(100.0)
-        paths.append(str(save_qnet(root / f"agent{seed}" / "final.pt", net, {})))
-    return paths
+    # spread Q-values: no near-ties that the batch composition could flip
+    return save_pool(tmp_path_factory.mktemp("pool"), head_scale=100.0)
 
 
 @pytest.mark.parametrize("kind", ["learned", "mixed"])

@@ -14,17 +14,12 @@ from memrl.envs.vehicles import ACTIONS
 from memrl.modules.opponents import LearnedCarController, OpponentPoolError
 from memrl.modules.qnet import QNetwork
 from memrl.train import train
-from tests.helpers import TINY
+from tests.helpers import TINY, save_pool
 
 
 @pytest.fixture(scope="module")
 def pool(tmp_path_factory):
-    root = tmp_path_factory.mktemp("pool")
-    paths = []
-    for seed in (1, 2):
-        torch.manual_seed(seed)
-        paths.append(str(save_qnet(root / f"agent{seed}" / "final.pt", QNetwork(), {})))
-    return paths
+    return save_pool(tmp_path_factory.mktemp("pool"))
 
 
 def learned_env(pool, **extra) -> LaneChangeEnv:
