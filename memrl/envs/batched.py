@@ -124,8 +124,8 @@ class BatchedLaneChange:
         if self.learned is not None and self.learned.device != self.device:  # type: ignore[attr-defined]
             self.learned.to(self.device)  # type: ignore[attr-defined]
         n, c, dev = self.num_envs, 1 + max_cars(cfg), self.device
-        f64 = dict(dtype=torch.float64, device=dev)
-        self.state = torch.zeros(n, c, 5, **f64)
+        f64 = torch.float64
+        self.state = torch.zeros(n, c, 5, dtype=f64, device=dev)
         """``[N, C, (x, y, heading, speed, curvature)]`` of every car slot."""
         self.present = torch.zeros(n, c, dtype=torch.bool, device=dev)
         self.is_learned = torch.zeros(n, c, dtype=torch.bool, device=dev)
@@ -150,12 +150,12 @@ class BatchedLaneChange:
         if self.learned is not None:
             self._car_frames = torch.zeros(n, c, frame_stack, b.height, b.width, dtype=torch.uint8,
                                            device=dev)
-        self._ds = torch.tensor([a[0] for a in ACTIONS], **f64) * cfg.speed_step
-        self._dk = torch.tensor([a[1] for a in ACTIONS], **f64) * cfg.curvature_step
+        self._ds = torch.tensor([a[0] for a in ACTIONS], dtype=f64, device=dev) * cfg.speed_step
+        self._dk = torch.tensor([a[1] for a in ACTIONS], dtype=f64, device=dev) * cfg.curvature_step
         self._weights = [float(getattr(cfg.reward, k)) for k in REWARD_NAMES]
-        self._half = torch.tensor([0.5 * cfg.vehicle_length, 0.5 * cfg.vehicle_width], **f64)
+        self._half = torch.tensor([0.5 * cfg.vehicle_length, 0.5 * cfg.vehicle_width], dtype=f64, device=dev)
         self._diag = float(np.sqrt(cfg.vehicle_length ** 2 + cfg.vehicle_width ** 2))
-        signs = torch.tensor([[-1, -1], [-1, 1], [1, 1], [1, -1]], **f64)
+        signs = torch.tensor([[-1, -1], [-1, 1], [1, 1], [1, -1]], dtype=f64, device=dev)
         self._local = signs * self._half  # [4, 2] body corners in the car's frame [m]
         self._active: torch.Tensor | None = None
 
@@ -179,8 +179,9 @@ class BatchedLaneChange:
         target = np.zeros(len(ids), dtype=np.int64)
         pool = self.opponents.pool_size
         for row, i in enumerate(ids):
-            if seeds is not None and seeds[row] is not None:
-                self.rngs[i] = np_random(int(seeds[row]))[0]  # type: ignore[index]
+            seed = None if seeds is None else seeds[row]
+            if seed is not None:
+                self.rngs[i] = np_random(int(seed))[0]
             elif self.rngs[i] is None:
                 self.rngs[i] = np_random()[0]
             scene = sample_scene(self.cfg, self.rngs[i], pool)  # type: ignore[arg-type]
@@ -192,13 +193,13 @@ class BatchedLaneChange:
             car_target[row, 0], car_target[row, 1:1 + k] = scene.target_lane, scene.car_target
             policy[row, 1:1 + k] = scene.policy
         idx = torch.tensor(ids, device=self.device)
-        put = dict(device=self.device)
-        self.state[idx] = torch.as_tensor(state, dtype=torch.float64, **put)
-        self.present[idx] = torch.as_tensor(present, **put)
-        self.is_learned[idx] = torch.as_tensor(learned, **put)
-        self.car_target[idx] = torch.as_tensor(car_target, **put)
-        self.policy[idx] = torch.as_tensor(policy, **put)
-        self.target_lane[idx] = torch.as_tensor(target, **put)
+        dev = self.device
+        self.state[idx] = torch.as_tensor(state, dtype=torch.float64, device=dev)
+        self.present[idx] = torch.as_tensor(present, device=dev)
+        self.is_learned[idx] = torch.as_tensor(learned, device=dev)
+        self.car_target[idx] = torch.as_tensor(car_target, device=dev)
+        self.policy[idx] = torch.as_tensor(policy, device=dev)
+        self.target_lane[idx] = torch.as_tensor(target, device=dev)
         self.steps[idx] = 0
         self.crashed[idx] = False
         lo, hi = self._lateral_extent(self.state[idx, 0])

@@ -80,7 +80,15 @@ class _Ops:
     # Hand-written: one rasterizer must run on numpy (the reference env's single views, where
     # torch's per-call overhead would triple the env's step time) and on torch (the batched
     # engine, any device); arithmetic and indexing are written once, these few calls differ.
-    def __init__(self, xp: object) -> None:
+    ceil: Any
+    floor: Any
+    where: Any
+    minimum: Any
+    maximum: Any
+    cos: Any
+    sin: Any
+
+    def __init__(self, xp: Any) -> None:
         self.xp = xp
         self.is_torch = xp is torch
         self.inf = np.float32(np.inf) if not self.is_torch else torch.tensor(np.inf, dtype=torch.float32)
@@ -208,7 +216,7 @@ class BEVRenderer:
             "path_s": np.linspace(0.0, path_length, max(2, math.ceil(path_length / step) + 1)),
         }
         on_device = {k: torch.from_numpy(v).to(self.device) for k, v in consts.items()}
-        self._consts = {NUMPY: consts, TORCH: on_device}
+        self._consts: dict[_Ops, dict[str, Any]] = {NUMPY: consts, TORCH: on_device}
         self.table = self._consts[TORCH]["table"]
 
     # ------------------------------------------------------------------------ batched

@@ -65,7 +65,8 @@ def sample_scene(cfg: LaneChangeConfig, rng: np.random.Generator, pool_size: int
     others = [lane for lane in range(n) if lane != target]
     start_on_target = cfg.initial_lane == "random" and rng.random() < 0.5
     lane = target if start_on_target else int(rng.choice(others))
-    agent = np.array([AGENT_X, lane * cfg.lane_width, 0.0, float(rng.uniform(*cfg.initial_speed)), 0.0])
+    low, high = cfg.initial_speed
+    agent = np.array([AGENT_X, lane * cfg.lane_width, 0.0, float(rng.uniform(low, high)), 0.0])
     # Drawn only when enabled, so the episodes of a seed stay the same without them.
     if cfg.initial_offset > 0:
         agent[1] += float(rng.uniform(-cfg.initial_offset, cfg.initial_offset))
@@ -110,7 +111,8 @@ def _spawn_others(cfg: LaneChangeConfig, rng: np.random.Generator, agent_lane: i
             if clear:
                 placed.append((lane, x))
                 break
-    speeds = rng.uniform(*cfg.other_speed, size=len(placed))
+    low, high = cfg.other_speed
+    speeds = rng.uniform(low, high, size=len(placed))
     rows: list[list[float]] = []
     for lane in range(cfg.lanes_count):
         xs = sorted(x for pl, x in placed if pl == lane)

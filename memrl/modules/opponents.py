@@ -75,7 +75,8 @@ class LearnedCarController(CarController):
 
     def _set_networks(self, nets: list[QNetwork]) -> None:
         # channels-last weights: the same Q-values, several times faster convs on CPU
-        self.networks = [n.eval().to(memory_format=torch.channels_last) for n in nets]
+        self.networks = [n.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+                         for n in nets]
         params, buffers = stack_module_state(self.networks)  # type: ignore[arg-type]
         self._params = {k: v.detach() for k, v in params.items()}
         self._buffers = buffers
