@@ -36,6 +36,18 @@ def test_bench_env_measures_both_envs_and_writes_json(compose_cfg, tmp_path):
     assert json.loads((tmp_path / "bench.json").read_text())["env"]["steps"] == 30
 
 
+def test_bench_batched_times_each_n_beside_the_reference_and_writes_json(compose_cfg, tmp_path):
+    cfg = compose_cfg("bench", ["benchmarks=[batched]", "batched.sizes=[1,4]", "batched.seconds=0.05",
+                                "batched.reference_steps=20", "batched.learned_sizes=[2]"])
+    result = bench(cfg, tmp_path)["batched"]
+    assert set(result["constant"]) == {"1", "4"} and set(result["learned"]) == {"2"}
+    assert all(r > 0 for r in [*result["constant"].values(), *result["learned"].values()])
+    ref = result["reference_gym_steps_per_s"]
+    assert result["constant_ratio_to_reference"]["4"] == pytest.approx(result["constant"]["4"] / ref)
+    assert result["device"] == "cpu" and result["torch_threads"] == 1
+    assert json.loads((tmp_path / "bench.json").read_text())["batched"]["constant"] == result["constant"]
+
+
 def test_bench_rejects_unknown_benchmark(compose_cfg, tmp_path):
     with pytest.raises(ValueError, match="benchmarks.*one of env"):
         bench(compose_cfg("bench", ["benchmarks=[nope]"]), tmp_path)

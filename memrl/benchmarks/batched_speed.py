@@ -66,9 +66,19 @@ def run(sizes: list[int], gpu_sizes: list[int], seconds: float = 3.0, reference_
         vehicles_count: int = 5, learned: bool = True, learned_sizes: list[int] | None = None,
         threads: int = 1, device: str = "auto", seed: int = 0) -> dict[str, Any]:
     """Steps/s of each layer; ratios of the batched engine to the reference gym env."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        return _run(sizes, gpu_sizes, seconds, reference_steps, vehicles_count, learned, learned_sizes,
+                    device, seed)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _run(sizes: list[int], gpu_sizes: list[int], seconds: float, reference_steps: int, vehicles_count: int,
+         learned: bool, learned_sizes: list[int] | None, device: str, seed: int) -> dict[str, Any]:
     from memrl.envs.batched import resolve_device
 
-    torch.set_num_threads(threads)
     dev = resolve_device(device)
     os.environ["SDL_VIDEODRIVER"] = "offscreen"  # 'dummy' makes highway-env skip drawing
     import highway_env  # noqa: F401  (registers highway-fast-v0)
