@@ -31,6 +31,8 @@ from memrl.errors import UserError
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
+NUMPY_MAX_VIEWS = 256
+"""On CPU, calls with at most this many views are drawn by the rasterizer's numpy path."""
 INFO_KEYS = ("collided", "on_target_lane", "reached_target")
 """Per-step flags of the agent (the reference env's ``info`` keys of the same names)."""
 
@@ -144,6 +146,7 @@ class BatchedLaneChange:
         # frame ring [S, N, H, W] in one flat buffer with a spare last byte (the renderer's)
         self._ring = torch.zeros(frame_stack * n * b.height * b.width + 1, dtype=torch.uint8, device=dev)
         self._frames = self._ring[:-1].view(frame_stack, n, b.height, b.width)
+        self._ring_np = self._ring.numpy() if dev.type == "cpu" else None  # the same memory
         self._head = 0  # slot of the newest frame in the ring
         self._car_frames: torch.Tensor | None = None
         self._car_fresh = torch.zeros(n, c, dtype=torch.bool, device=dev)
@@ -358,11 +361,25 @@ class BatchedLaneChange:
         labels[:, 0] = LABEL["agent"]
         labels = torch.where(present, labels, -1)
         path = state[:, 0, [X, Y, HEADING, CURVATURE]]
+        views = (state[:, 0, :2], target, state[..., :3], labels, path)
         if into is not None:
-            self.renderer.render_into(self._ring, into * self._frames[0].numel(), state[:, 0, :2], target,
-                                      state[..., :3], labels, path)
+            flat = self._ring_np if self._on_numpy(len(state)) else self._ring
+            self.renderer.render_into(flat, into * self._frames[0].numel(), *self._as_backend(views))
             return self._frames[into]
-        return self.renderer.render_batch(state[:, 0, :2], target, state[..., :3], labels, path)
+        return self._draw(views)
+
+    def _on_numpy(self, n_views: int) -> bool:
+        """Draw these views with numpy: on CPU, up to a few hundred views numpy's lower cost
+        per call wins (same code, same pixels; ``python -m memrl.bench batched`` times it)."""
+        return self._ring_np is not None and n_views <= NUMPY_MAX_VIEWS
+
+    def _as_backend(self, views: tuple[torch.Tensor, ...]) -> tuple[Any, ...]:
+        return tuple(v.numpy() for v in views) if self._on_numpy(len(views[0])) else views
+
+    def _draw(self, views: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        """Pictures ``[V, H, W]`` of the views (center, target, cars, labels, path) as a tensor."""
+        img = self.renderer.render_batch(*self._as_backend(views))
+        return torch.from_numpy(img) if isinstance(img, np.ndarray) else img
 
     def _learned_actions(self) -> torch.Tensor:
         """Actions ``[N, C]`` of the learned cars (others: IDLE) from their own views, through
@@ -375,8 +392,8 @@ class BatchedLaneChange:
         labels[torch.arange(len(env_i), device=self.device), slot_i] = LABEL["agent"]
         labels = torch.where(self.present[env_i], labels, -1)
         me = state[torch.arange(len(env_i), device=self.device), slot_i]  # [M, 5]
-        frames = self.renderer.render_batch(me[:, :2], self.car_target[env_i, slot_i], state[..., :3],
-                                            labels, me[:, [X, Y, HEADING, CURVATURE]])
+        frames = self._draw((me[:, :2], self.car_target[env_i, slot_i], state[..., :3], labels,
+                             me[:, [X, Y, HEADING, CURVATURE]]))
         stacks = self._car_frames[env_i, slot_i]  # [M, S, H, W]
         fresh = self._car_fresh[env_i, slot_i]
         stacks = torch.where(fresh[:, None, None, None], frames[:, None].expand_as(stacks),

@@ -98,24 +98,29 @@ def _spawn_others(cfg: LaneChangeConfig, rng: np.random.Generator, agent_lane: i
     count = cfg.vehicles_count
     if isinstance(count, list | tuple):
         count = int(rng.integers(count[0], count[1] + 1))
-    placed: list[tuple[int, float]] = []
-    x0 = AGENT_X
+    integers, uniform = rng.integers, rng.uniform  # called per attempt: looked up once
+    lanes, x0 = cfg.lanes_count, AGENT_X
+    low, high = x0 - cfg.spawn_behind, x0 + cfg.spawn_ahead
     min_gap = cfg.vehicle_length + cfg.spawn_gap
+    agent_gap = cfg.vehicle_length + 2 * cfg.spawn_gap
+    by_lane: list[list[float]] = [[] for _ in range(lanes)]
+    placed = 0
     for _ in range(count):
         for _ in range(cfg.spawn_attempts):
-            lane = int(rng.integers(cfg.lanes_count))
-            x = float(rng.uniform(x0 - cfg.spawn_behind, x0 + cfg.spawn_ahead))
-            clear = all(abs(x - px) >= min_gap for pl, px in placed if pl == lane)
-            if lane == agent_lane:
-                clear = clear and abs(x - x0) >= cfg.vehicle_length + 2 * cfg.spawn_gap
-            if clear:
-                placed.append((lane, x))
-                break
+            lane = int(integers(lanes))
+            x = float(uniform(low, high))
+            if lane == agent_lane and abs(x - x0) < agent_gap:
+                continue
+            if any(abs(x - px) < min_gap for px in by_lane[lane]):
+                continue
+            by_lane[lane].append(x)
+            placed += 1
+            break
     low, high = cfg.other_speed
-    speeds = rng.uniform(low, high, size=len(placed))
+    speeds = rng.uniform(low, high, size=placed)
     rows: list[list[float]] = []
-    for lane in range(cfg.lanes_count):
-        xs = sorted(x for pl, x in placed if pl == lane)
+    for lane in range(lanes):
+        xs = sorted(by_lane[lane])
         lane_speeds = sorted(speeds[len(rows): len(rows) + len(xs)])
         rows += [[x, lane * cfg.lane_width, 0.0, float(v), 0.0] for x, v in zip(xs, lane_speeds, strict=True)]
     return np.array(rows, dtype=np.float64).reshape(-1, len(STATE))
