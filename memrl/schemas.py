@@ -303,6 +303,8 @@ class ReportSchema:
     bootstrap_seed: int = spec(ge=0, le=SEED_MAX)
     comparisons: list[list[str]] = MISSING
     """Pairs [a, b] of Table III rows."""
+    row_ignore: list[str] = MISSING
+    """Run config keys (and prefixes) that never split a Table III row."""
     fig5: bool = MISSING
     smooth: int = spec(ge=1)
     curve_resamples: int = spec(ge=1)
