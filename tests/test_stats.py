@@ -224,8 +224,15 @@ def test_report_writes_iqm_and_probability_of_improvement(tmp_path, compose_cfg)
     assert float(s["p_improvement"]) == pytest.approx(10.5 / 16, abs=1e-4)
     assert 0 <= float(s["p_low"]) <= 10.5 / 16 <= float(s["p_high"]) <= 1
     assert float(diffs[("B", "random", "goal")]["p_improvement"]) == 0.5  # equal seeds
+    # over all columns: the mean of the four columns' P (survival 10.5/16 twice, goal 0.5 twice)
+    # and the mean difference over every (seed, column) score (+2.5 twice, 0 twice)
+    agg = diffs[("B", "all", "columns")]
+    assert float(agg["p_improvement"]) == pytest.approx((2 * 10.5 / 16 + 2 * 0.5) / 4, abs=1e-4)
+    assert float(agg["difference"]) == pytest.approx(1.25) and agg["ci_over"] == "seeds"
+    assert float(agg["p_low"]) <= float(agg["p_improvement"]) <= float(agg["p_high"])
     md = files.table_md.read_text()
     assert "random survival IQM" in md and "P(a > b)" in md
+    assert f"Over all columns: {1.25:+.1f} [" in md and "P(B > Default) = 0.58 [" in md
     assert "| B \u2212 Default | random survival | +2.5 |" in md and "| 0.66 [" in md
     doc = OmegaConf.load(files.report_json)
     assert doc.rows[0].cells["random/survival"].iqm == 25.0

@@ -14,8 +14,10 @@ A row with a single unit has no spread over seeds: its intervals are over that u
 episodes instead, and say so (``over = episodes``); its IQM is its score. Pairwise
 comparisons (B vs Default, A vs Default) give per column the mean difference and the
 probability of improvement P(a > b) (Mann-Whitney U / (n m), ties 1/2) over the seeds of the
-two rows, each with an interval resampling both rows independently (stratified over
-columns where several are aggregated). P(a > b) needs two units in each row.
+two rows, each with an interval resampling both rows independently; and the same over all
+columns (:data:`ALL`: the mean difference over every (seed, column) score and the mean over
+columns of P(a > b)), with a stratified bootstrap that resamples seeds within each column.
+P(a > b) and the aggregate need two units in each row.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ log = logging.getLogger(__name__)
 METRICS = ("survival", "goal")
 COLUMNS = tuple((lane, metric) for lane in INITIAL_LANES for metric in METRICS)
 """Table III's columns: (initial lane, metric)."""
+ALL = ("all", "columns")
+"""The column of a comparison aggregated over every column (rliable's tasks) both rows have."""
 
 
 @dataclass
@@ -201,4 +205,24 @@ def differences(results: Sequence[EvalResult], pairs: Sequence[Sequence[str]],
             diff = float(np.mean(va) - np.mean(vb))
             out.append(Difference(ga.label, gb.label, (lane, metric), Cell([diff], diff, low, high, over),
                                   len(ra), len(rb), p, p_low, p_high))
+        aggregate = over_all_columns(ra, rb, cfg, key=20_000 + 100 * k)
+        if aggregate is not None:
+            out.append(Difference(ga.label, gb.label, ALL, *aggregate))
     return out
+
+
+def over_all_columns(ra: list[EvalResult], rb: list[EvalResult], cfg: StatsConfig,
+                     key: int) -> tuple[Cell, int, int, float, float, float] | None:
+    """The comparison aggregated over the columns both rows have (rliable's tasks): the mean
+    difference over all (seed, column) scores and the mean over columns of P(a > b), with a
+    stratified bootstrap (seeds resampled per column, each row independently). None with
+    fewer than two seeds in a row or fewer than two columns."""
+    cols = [(lane, metric) for lane, metric in COLUMNS if all(lane in r.scores for r in ra + rb)]
+    if len(ra) < 2 or len(rb) < 2 or len(cols) < 2:
+        return None
+    xs = [np.array([[score(r, lane, metric) for lane, metric in cols] for r in rows]) for rows in (ra, rb)]
+    diff = bs.point(xs, bs.mean_difference)
+    low, high = _interval(xs, bs.mean_difference, cfg, key)
+    p = bs.point(xs, bs.probability_of_improvement)
+    p_low, p_high = _interval(xs, bs.probability_of_improvement, cfg, key)
+    return Cell([diff], diff, low, high, "seeds"), len(ra), len(rb), p, p_low, p_high

@@ -7,7 +7,7 @@ import csv
 from collections.abc import Sequence
 from pathlib import Path
 
-from memrl.evaluation.stats import COLUMNS, Cell, Difference, Row
+from memrl.evaluation.stats import ALL, COLUMNS, Cell, Difference, Row
 
 LANE_NAMES = {"random": "random", "non_goal": "non-goal"}
 
@@ -70,7 +70,9 @@ def markdown(rows: Sequence[Row], diffs: Sequence[Difference], confidence: float
     if diffs:
         lines += ["", f"### Pairwise comparisons ({pct} bootstrap intervals)", "",
                   "Difference of the means, and the probability of improvement P(a > b): the chance "
-                  "that a seed of a scores above a seed of b (ties count 1/2; 0.5: no difference).", "",
+                  "that a seed of a scores above a seed of b (ties count 1/2; 0.5: no difference). "
+                  "All columns: the mean difference over every (seed, column) and the mean of the "
+                  "columns' P(a > b), seeds resampled within each column (stratified bootstrap).", "",
                   "| comparison | column | difference | interval | excludes 0 | P(a > b) [interval] |",
                   "|---|---|---|---|---|---|"]
         for d in diffs:
@@ -83,10 +85,12 @@ def markdown(rows: Sequence[Row], diffs: Sequence[Difference], confidence: float
 
 
 def verdict(diffs: Sequence[Difference], pct: str) -> str:
-    """One sentence per comparison: which columns' intervals exclude zero."""
+    """Per comparison: which columns' intervals exclude zero (or 0.5 for P(a > b)), then the
+    comparison over all columns."""
     out = []
     for a, b in dict.fromkeys((d.a, d.b) for d in diffs):
-        mine = [d for d in diffs if (d.a, d.b) == (a, b)]
+        mine = [d for d in diffs if (d.a, d.b) == (a, b) and d.column != ALL]
+        overall = [d for d in diffs if (d.a, d.b) == (a, b) and d.column == ALL]
         sure = [d for d in mine if d.cell.excludes_zero()]
         n = f"{a} vs {b} ({mine[0].n_a} vs {mine[0].n_b} units)"
         if sure:
@@ -99,6 +103,9 @@ def verdict(diffs: Sequence[Difference], pct: str) -> str:
         if probable:
             parts = ", ".join(f"{column_name(d.column)} {fmt_p(d)}" for d in probable)
             out.append(f"P({a} > {b}) excludes 0.5 for {parts}.")
+        for d in overall:
+            out.append(f"Over all columns: {d.cell.mean:+.1f} [{_num(d.cell.low)}, {_num(d.cell.high)}], "
+                       f"P({a} > {b}) = {fmt_p(d)}.")
     if any(min(d.n_a, d.n_b) < 5 and d.cell.over == "seeds" for d in diffs):
         out.append("With so few seeds these intervals are optimistic; more seeds, not more "
                    "evaluation episodes, would make them trustworthy.")
