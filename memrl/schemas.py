@@ -325,6 +325,9 @@ def check_report(cfg: DictConfig) -> None:
     for pair in cfg.comparisons:
         if len(pair) != 2:
             raise config_error("comparisons", f"expected pairs [a, b] of row labels, got {list(pair)}")
+    for key in cfg.row_ignore:
+        if not str(key).strip() or " " in str(key):
+            raise config_error("row_ignore", f"expected config keys such as paths or log_every, got {key!r}")
     for item in cfg.runs:
         if not Path(str(item)).exists():
             raise config_error("runs", f"no such folder {item}")
