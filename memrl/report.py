@@ -3,8 +3,10 @@
 Finds every evaluation (``eval.json``) and training run (``episodes.csv``) below the given
 folders; with ``evaluate_missing`` it first evaluates trained runs that have no evaluation
 under the configured protocol. Writes into its Hydra run folder: ``table3.md``,
-``table3.csv``, ``differences.csv``, ``fig5.png``, ``fig7_<row>.png``, ``rollouts_<row>.mp4``
-and ``report.json``, and prints the markdown table.
+``table3.csv`` (mean and IQM with stratified-bootstrap intervals, per-seed values; rows are
+whole configurations), ``differences.csv`` (differences and P(a > b) with intervals),
+``fig5.png``, ``fig7_<row>.png``, ``rollouts_<row>.mp4`` and ``report.json``, and prints the
+markdown table.
 """
 
 from __future__ import annotations
@@ -177,11 +179,12 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
         _rollouts(cfg, results, out, files)
     doc = {
         "protocol_id": pid, "protocol": results[0].protocol,
-        "rows": [{"label": r.label, "units": r.units,
+        "rows": [{"label": r.label, "base": r.base, "config": r.variant, "units": r.units,
                   "cells": {f"{lane}/{metric}": asdict(c) for (lane, metric), c in r.cells.items()}}
                  for r in rows],
         "differences": [{"a": d.a, "b": d.b, "column": "/".join(d.column), **asdict(d.cell),
-                         "excludes_zero": d.cell.excludes_zero()} for d in diffs],
+                         "excludes_zero": d.cell.excludes_zero(), "p_improvement": d.p_improvement,
+                         "p_low": d.p_low, "p_high": d.p_high} for d in diffs],
         "sources": [str(r.path) for r in results],
         "files": {k: [str(p) for p in v] if isinstance(v, list) else (str(v) if v else None)
                   for k, v in asdict(files).items() if k != "markdown"},

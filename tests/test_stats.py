@@ -236,3 +236,5 @@ def test_report_writes_iqm_and_probability_of_improvement(tmp_path, compose_cfg)
     assert "| B \u2212 Default | random survival | +2.5 |" in md and "| 0.66 [" in md
     doc = OmegaConf.load(files.report_json)
     assert doc.rows[0].cells["random/survival"].iqm == 25.0
+    [p] = [d.p_improvement for d in doc.differences if d.column == "random/survival"]
+    assert p == pytest.approx(10.5 / 16)
