@@ -164,6 +164,14 @@ def test_rows_split_by_differing_config_keys(tmp_path, compose_cfg):
         ("B (total_frames=20000)", "Default (total_frames=20000)")]
 
 
+def test_rows_still_split_after_the_runs_moved(tmp_path, compose_cfg):
+    _runs(tmp_path / "x", compose_cfg, "B", [0], ["total_frames=100"])
+    _runs(tmp_path / "y", compose_cfg, "B", [0], ["total_frames=200"])
+    shutil.move(tmp_path / "x", tmp_path / "moved_x")  # eval.json still names the old folder
+    labels = [g.label for g in rows.split_rows(find_results([tmp_path]))]
+    assert labels == ["B (total_frames=100)", "B (total_frames=200)"]
+
+
 def test_row_labels_name_nested_keys_and_every_difference(tmp_path, compose_cfg):
     _runs(tmp_path / "x", compose_cfg, "A", [0], ["agent.lr=0.001"])
     _runs(tmp_path / "y", compose_cfg, "A", [0], ["agent.lr=0.0005", "mode.demo_fraction=0.2"])

@@ -73,9 +73,13 @@ def run_settings(result: EvalResult, ignore: Sequence[str] = IGNORED_KEYS) -> di
     """The flattened ``config.yaml`` of the evaluated run without the ignored keys ({} when
     the evaluation is not of a run or the run has no config)."""
     run = run_folder(result)
-    if run is None or not (run / "config.yaml").is_file():
+    if run is None:
         return {}
-    tree = OmegaConf.to_container(OmegaConf.load(run / "config.yaml"), resolve=False)
+    # the run as evaluated, else the folder holding the evaluation (a study moved elsewhere)
+    found = [p for p in (run, result.path.parent) if (p / "config.yaml").is_file()]
+    if not found:
+        return {}
+    tree = OmegaConf.to_container(OmegaConf.load(found[0] / "config.yaml"), resolve=False)
     return {k: v for k, v in flatten(tree).items() if not is_ignored(k, ignore)}
 
 
