@@ -3,14 +3,17 @@
 Finds every evaluation (``eval.json``) and training run (``episodes.csv``) below the given
 folders; with ``evaluate_missing`` it first evaluates trained runs that have no evaluation
 under the configured protocol. Writes into its Hydra run folder: ``table3.md``,
-``table3.csv``, ``differences.csv``, ``fig5.png``, ``fig7_<row>.png``, ``rollouts_<row>.mp4``
-and ``report.json``, and prints the markdown table.
+``table3.csv`` (mean and IQM with stratified-bootstrap intervals, per-seed values; rows are
+whole configurations), ``differences.csv`` (differences and P(a > b) with intervals),
+``fig5.png``, ``fig7_<row>.png``, ``rollouts_<row>.mp4`` and ``report.json``, and prints the
+markdown table.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -25,6 +28,8 @@ from memrl.schemas import check_report
 
 if TYPE_CHECKING:  # the evaluation stack (torch) loads on the first run, not for --help
     from memrl.evaluation.results import EvalResult
+    from memrl.evaluation.rows import RowGroup
+    from memrl.evaluation.stats import StatsConfig
 
 log = logging.getLogger(__name__)
 
@@ -70,38 +75,56 @@ def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
     return done
 
 
+def _rows_named(groups: list[RowGroup], name: str) -> list[RowGroup]:
+    """The row labelled ``name``, else every row of that name (one per configuration)."""
+    exact = [g for g in groups if g.label == name]
+    return exact or [g for g in groups if g.base == name]
+
+
 def _rollouts(cfg: DictConfig, results: list[EvalResult], out: Path, files: ReportFiles) -> None:
-    from memrl.evaluation import rollouts, stats
+    from memrl.evaluation import stats
 
     r = cfg.rollouts
-    by = stats.group(results)
-    for label in r.rows:
-        units = by.get(str(label), [])
-        if r.unit is not None:
-            units = [u for u in units if u.unit == str(r.unit)]
-        if not units:
-            log.info("fig. 7: no evaluation of row %s%s; skipped", label,
-                     f" unit {r.unit}" if r.unit is not None else "")
-            continue
-        result = units[0]
-        actor = rollouts.actor_for(result)
-        if actor is None:
-            log.info("fig. 7: %s cannot be replayed (a person drove); skipped", label)
-            continue
-        episodes = rollouts.pick_episodes(result, str(r.initial_lane), int(r.count), str(r.pick))
-        caps = [rollouts.capture(actor, result, str(r.initial_lane), e) for e in episodes]
-        for c in caps:  # the replay must be the evaluated episode
-            rec = next(x for x in result.records() if x.initial_lane == r.initial_lane
-                       and x.episode == c.record.episode)
-            if (rec.steps, rec.collided, rec.reached_target) != \
-                    (c.record.steps, c.record.collided, c.record.reached_target):
-                log.warning("fig. 7: replay of %s episode %d differs from its evaluation", label, rec.episode)
-        name = str(label).replace(" ", "_")
-        steps = None if r.steps is None else [int(x) for x in r.steps]
-        picture = rollouts.strip(caps, steps, float(r.scale))
-        files.strips.append(rollouts.write_png(picture, out / f"fig7_{name}.png"))
-        if r.video:
-            files.videos.append(rollouts.write_video(caps, out / f"rollouts_{name}.mp4", float(r.fps)))
+    groups = stats.rows_of(results, stats_config(cfg))
+    for name in r.rows:
+        named = _rows_named(groups, str(name))
+        if not named:
+            log.info("fig. 7: no evaluation of row %s; skipped", name)
+        for g in named:
+            _rollout_row(cfg, g, out, files)
+
+
+def _rollout_row(cfg: DictConfig, g: RowGroup, out: Path, files: ReportFiles) -> None:
+    """Fig. 7 strip and video of one row's first unit (or ``rollouts.unit``)."""
+    from memrl.evaluation import rollouts
+
+    r = cfg.rollouts
+    label, units = g.label, g.results
+    if r.unit is not None:
+        units = [u for u in units if u.unit == str(r.unit)]
+    if not units:
+        log.info("fig. 7: no evaluation of row %s%s; skipped", label,
+                 f" unit {r.unit}" if r.unit is not None else "")
+        return
+    result = units[0]
+    actor = rollouts.actor_for(result)
+    if actor is None:
+        log.info("fig. 7: %s cannot be replayed (a person drove); skipped", label)
+        return
+    episodes = rollouts.pick_episodes(result, str(r.initial_lane), int(r.count), str(r.pick))
+    caps = [rollouts.capture(actor, result, str(r.initial_lane), e) for e in episodes]
+    for c in caps:  # the replay must be the evaluated episode
+        rec = next(x for x in result.records() if x.initial_lane == r.initial_lane
+                   and x.episode == c.record.episode)
+        if (rec.steps, rec.collided, rec.reached_target) != \
+                (c.record.steps, c.record.collided, c.record.reached_target):
+            log.warning("fig. 7: replay of %s episode %d differs from its evaluation", label, rec.episode)
+    name = re.sub(r"[^A-Za-z0-9.=-]+", "_", label).strip("_")  # Default_total_frames=1
+    steps = None if r.steps is None else [int(x) for x in r.steps]
+    picture = rollouts.strip(caps, steps, float(r.scale))
+    files.strips.append(rollouts.write_png(picture, out / f"fig7_{name}.png"))
+    if r.video:
+        files.videos.append(rollouts.write_video(caps, out / f"rollouts_{name}.mp4", float(r.fps)))
 
 
 def _plain(cfg: DictConfig, out: Path) -> dict:
@@ -109,6 +132,14 @@ def _plain(cfg: DictConfig, out: Path) -> dict:
     saved = cfg.copy()
     saved.paths.output_dir = str(out)
     return OmegaConf.to_container(saved, resolve=True)  # type: ignore[return-value]
+
+
+def stats_config(cfg: DictConfig) -> StatsConfig:
+    """The statistics settings of the report config."""
+    from memrl.evaluation.stats import StatsConfig
+
+    return StatsConfig(float(cfg.confidence), int(cfg.n_resamples), int(cfg.bootstrap_seed),
+                       tuple(str(k) for k in cfg.row_ignore))
 
 
 def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
@@ -131,13 +162,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
         raise FileNotFoundError(f"report: no evaluation (eval.json) under {list(cfg.runs)}; run "
                                 "python -m memrl.evaluate first or set evaluate_missing=true")
     pid = stats.check_protocols(results)
-    seen: dict[tuple[str, str], Path] = {}
-    for res in results:
-        if (res.name, res.unit) in seen:
-            log.warning("two evaluations of %s [%s]: %s and %s (both count)", res.name, res.unit,
-                        seen[(res.name, res.unit)], res.path)
-        seen[(res.name, res.unit)] = res.path
-    scfg = stats.StatsConfig(float(cfg.confidence), int(cfg.n_resamples), int(cfg.bootstrap_seed))
+    scfg = stats_config(cfg)
     rows = stats.table(results, scfg)
     diffs = stats.differences(results, [list(p) for p in cfg.comparisons], scfg)
     md = tables.markdown(rows, diffs, scfg.confidence)
@@ -154,11 +179,12 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
         _rollouts(cfg, results, out, files)
     doc = {
         "protocol_id": pid, "protocol": results[0].protocol,
-        "rows": [{"label": r.label, "units": r.units,
+        "rows": [{"label": r.label, "base": r.base, "config": r.variant, "units": r.units,
                   "cells": {f"{lane}/{metric}": asdict(c) for (lane, metric), c in r.cells.items()}}
                  for r in rows],
         "differences": [{"a": d.a, "b": d.b, "column": "/".join(d.column), **asdict(d.cell),
-                         "excludes_zero": d.cell.excludes_zero()} for d in diffs],
+                         "excludes_zero": d.cell.excludes_zero(), "p_improvement": d.p_improvement,
+                         "p_low": d.p_low, "p_high": d.p_high} for d in diffs],
         "sources": [str(r.path) for r in results],
         "files": {k: [str(p) for p in v] if isinstance(v, list) else (str(v) if v else None)
                   for k, v in asdict(files).items() if k != "markdown"},

@@ -303,6 +303,8 @@ class ReportSchema:
     bootstrap_seed: int = spec(ge=0, le=SEED_MAX)
     comparisons: list[list[str]] = MISSING
     """Pairs [a, b] of Table III rows."""
+    row_ignore: list[str] = MISSING
+    """Run config keys (and prefixes) that never split a Table III row."""
     fig5: bool = MISSING
     smooth: int = spec(ge=1)
     curve_resamples: int = spec(ge=1)
@@ -323,6 +325,9 @@ def check_report(cfg: DictConfig) -> None:
     for pair in cfg.comparisons:
         if len(pair) != 2:
             raise config_error("comparisons", f"expected pairs [a, b] of row labels, got {list(pair)}")
+    for key in cfg.row_ignore:
+        if not str(key).strip() or " " in str(key):
+            raise config_error("row_ignore", f"expected config keys such as paths or log_every, got {key!r}")
     for item in cfg.runs:
         if not Path(str(item)).exists():
             raise config_error("runs", f"no such folder {item}")

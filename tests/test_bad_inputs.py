@@ -107,6 +107,7 @@ ROWS = [
     ("report", ["runs=[.]", "n_resamples=0"], "n_resamples"),
     ("report", ["runs=[.]", "bootstrap_seed=-1"], "bootstrap_seed"),
     ("report", ["runs=[.]", "comparisons=[[B]]"], "comparisons"),
+    ("report", ["runs=[.]", "row_ignore=[seed,'']"], "row_ignore"),
     ("report", ["runs=[.]", "smooth=0"], "smooth"),
     ("report", ["runs=[.]", "curve_resamples=0"], "curve_resamples"),
     ("report", ["runs=[.]", "rollouts.count=0"], "rollouts.count"),

@@ -1,12 +1,23 @@
-"""Table III: survival and goal scores per method, mean over seeds with bootstrap intervals.
+"""Table III: survival and goal scores per row, mean and IQM over seeds with bootstrap intervals.
 
-Each row is one label (Default, A, B, scripted, random, human, ...); its *units* are the
-evaluation results of that label (one per training seed, or per person for humans). A cell
-is the mean of the units' scores with a percentile-bootstrap confidence interval over units
-(``scipy.stats.bootstrap``; rliable's stratified bootstrap reduces to this for one task).
-A row with a single unit has no spread over seeds: its interval is over that unit's episodes
-instead, and says so (``over = episodes``). Pairwise differences (B - Default, A - Default)
-resample both rows independently; an interval that excludes zero is flagged.
+Rows are whole configurations (:mod:`~memrl.evaluation.rows`); a row's *units* are its
+evaluations (one per training seed, or per person for humans). A cell is one column of
+Table III (initial lane x metric), i.e. one task in rliable's terms, and holds, over the
+units' scores (:mod:`~memrl.evaluation.bootstrap`):
+
+* the mean and the IQM (``scipy.stats.trim_mean(x, 0.25)``: the mean of the middle 50%;
+  with fewer than 4 units it equals the mean), each with a percentile stratified-bootstrap
+  interval, which for one column is the ordinary bootstrap over the row's seeds;
+* the per-unit values.
+
+A row with a single unit has no spread over seeds: its intervals are over that unit's
+episodes instead, and say so (``over = episodes``); its IQM is its score. Pairwise
+comparisons (B vs Default, A vs Default) give per column the mean difference and the
+probability of improvement P(a > b) (Mann-Whitney U / (n m), ties 1/2) over the seeds of the
+two rows, each with an interval resampling both rows independently; and the same over all
+columns (:data:`ALL`: the mean difference over every (seed, column) score and the mean over
+columns of P(a > b)), with a stratified bootstrap that resamples seeds within each column.
+P(a > b) and the aggregate need two units in each row.
 """
 
 from __future__ import annotations
@@ -16,23 +27,25 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import bootstrap
 
+from memrl.evaluation import bootstrap as bs
 from memrl.evaluation.protocol import INITIAL_LANES
 from memrl.evaluation.results import EvalResult
+from memrl.evaluation.rows import IGNORED_KEYS, RowGroup, matching_rows, split_rows
+from memrl.evaluation.rows import ROW_ORDER as ROW_ORDER  # re-exported (figures)
 
 log = logging.getLogger(__name__)
 
 METRICS = ("survival", "goal")
 COLUMNS = tuple((lane, metric) for lane in INITIAL_LANES for metric in METRICS)
 """Table III's columns: (initial lane, metric)."""
-ROW_ORDER = ("Default", "A", "B", "scripted", "random", "human")
-"""Rows in this order first; other labels follow alphabetically."""
+ALL = ("all", "columns")
+"""The column of a comparison aggregated over every column (rliable's tasks) both rows have."""
 
 
 @dataclass
 class Cell:
-    """One (row, column) entry."""
+    """One (row, column) entry, or one comparison's difference."""
 
     values: list[float]
     """Per-unit scores (per 100 episodes), in unit order."""
@@ -40,9 +53,13 @@ class Cell:
     low: float
     high: float
     over: str
-    """What the interval resamples: ``seeds`` (units) or ``episodes`` (a single unit)."""
+    """What the intervals resample: ``seeds`` (units) or ``episodes`` (a single unit)."""
     episodes: list[int] = field(default_factory=list)
     """Episodes behind each unit's score."""
+    iqm: float | None = None
+    """Interquartile mean of ``values`` (None for differences)."""
+    iqm_low: float | None = None
+    iqm_high: float | None = None
 
     def excludes_zero(self) -> bool:
         return bool(self.low > 0 or self.high < 0)
@@ -53,11 +70,15 @@ class Row:
     label: str
     units: list[str]
     cells: dict[tuple[str, str], Cell]
+    base: str = ""
+    """The evaluations' name (the label without the configuration that differs)."""
+    variant: dict = field(default_factory=dict)
+    """Config keys where this row differs from other rows of ``base``."""
 
 
 @dataclass
 class Difference:
-    """``a - b`` for one column."""
+    """``a - b`` and P(a > b) for one column."""
 
     a: str
     b: str
@@ -66,6 +87,10 @@ class Difference:
     n_a: int = 0
     """Units (seeds, people) of row ``a``."""
     n_b: int = 0
+    p_improvement: float | None = None
+    """P(a > b) over seeds (None when a row has a single unit)."""
+    p_low: float | None = None
+    p_high: float | None = None
 
 
 @dataclass
@@ -73,21 +98,22 @@ class StatsConfig:
     confidence: float = 0.95
     n_resamples: int = 10_000
     seed: int = 0
+    ignore: tuple[str, ...] = IGNORED_KEYS
+    """Config keys that never split a row (:data:`~memrl.evaluation.rows.IGNORED_KEYS`)."""
+
+    def rng(self, key: int) -> np.random.Generator:
+        """The generator of one interval (independent of the order intervals are computed in)."""
+        return np.random.default_rng([self.seed, key])
 
 
-def _mean_diff(x: np.ndarray, y: np.ndarray, axis: int = -1) -> np.ndarray:
-    return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+def _interval(samples: Sequence[np.ndarray], statistic: bs.Statistic, cfg: StatsConfig,
+              key: int) -> tuple[float, float]:
+    return bs.interval(samples, statistic, cfg.confidence, cfg.n_resamples, cfg.rng(key))
 
 
-def _interval(samples: Sequence[np.ndarray], statistic, cfg: StatsConfig, key: int) -> tuple[float, float]:
-    """Percentile bootstrap interval; degenerate (all equal) samples give a zero-width one."""
-    if all(np.ptp(s) == 0 for s in samples):
-        value = float(statistic(*[s[None] for s in samples], axis=-1)[0])
-        return value, value
-    res = bootstrap(tuple(samples), statistic, confidence_level=cfg.confidence,
-                    n_resamples=cfg.n_resamples, method="percentile", vectorized=True,
-                    rng=np.random.default_rng([cfg.seed, key]))
-    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+def score(result: EvalResult, lane: str, metric: str) -> float:
+    """One unit's score in one column."""
+    return float(getattr(result.scores[lane], f"{metric}_score"))
 
 
 def outcomes(result: EvalResult, lane: str, metric: str) -> np.ndarray:
@@ -96,33 +122,31 @@ def outcomes(result: EvalResult, lane: str, metric: str) -> np.ndarray:
     return 100.0 * np.array([r.survived if metric == "survival" else r.goal for r in recs], dtype=float)
 
 
-def _samples(results: list[EvalResult], lane: str, metric: str) -> tuple[np.ndarray, str]:
-    """What a cell resamples: units' scores, or the episodes of a single unit."""
-    if len(results) >= 2:
-        return np.array([getattr(r.scores[lane], f"{metric}_score") for r in results]), "seeds"
-    return outcomes(results[0], lane, metric), "episodes"
-
-
 def make_cell(results: list[EvalResult], lane: str, metric: str, cfg: StatsConfig, key: int) -> Cell:
-    values = [float(getattr(r.scores[lane], f"{metric}_score")) for r in results]
-    sample, over = _samples(results, lane, metric)
-    low, high = _interval([sample], np.mean, cfg, key)
+    """Mean and IQM over the units with intervals (over episodes for a single unit)."""
+    values = [score(r, lane, metric) for r in results]
+    if len(results) >= 2:
+        sample, over = np.array(values), "seeds"
+    else:
+        sample, over = outcomes(results[0], lane, metric), "episodes"
+    low, high = _interval([sample], bs.aggregate_mean, cfg, key)
+    if over == "seeds":
+        iqm = bs.point([sample], bs.iqm)
+        iqm_low, iqm_high = _interval([sample], bs.iqm, cfg, key)  # the same resamples as the mean
+    else:  # the IQM of one seed is its score, known as well as the mean is
+        iqm, iqm_low, iqm_high = values[0], low, high
     return Cell(values, float(np.mean(values)), low, high, over,
-                [r.scores[lane].episodes for r in results])
+                [r.scores[lane].episodes for r in results], iqm, iqm_low, iqm_high)
 
 
-def group(results: Sequence[EvalResult]) -> dict[str, list[EvalResult]]:
-    """Results by label, labels in :data:`ROW_ORDER` then alphabetically; units sorted."""
-    by: dict[str, list[EvalResult]] = {}
-    for r in results:
-        by.setdefault(r.name, []).append(r)
-    order = sorted(by, key=lambda k: (ROW_ORDER.index(k) if k in ROW_ORDER else len(ROW_ORDER), k))
-    return {k: sorted(by[k], key=lambda r: _natural(r.unit)) for k in order}
+def rows_of(results: Sequence[EvalResult], cfg: StatsConfig | None = None) -> list[RowGroup]:
+    """The rows (whole configurations) of the results."""
+    return split_rows(results, (cfg or StatsConfig()).ignore)
 
 
-def _natural(text: str) -> tuple:
-    """Sort key putting ``seed 2`` before ``seed 10``."""
-    return tuple(int(t) if t.isdigit() else t for t in text.replace("_", " ").split())
+def group(results: Sequence[EvalResult], cfg: StatsConfig | None = None) -> dict[str, list[EvalResult]]:
+    """Results by row label (:func:`rows_of` order); units sorted."""
+    return {g.label: g.results for g in rows_of(results, cfg)}
 
 
 def check_protocols(results: Sequence[EvalResult]) -> str:
@@ -141,39 +165,64 @@ def table(results: Sequence[EvalResult], cfg: StatsConfig | None = None) -> list
     """Table III rows (only the columns every unit of a row has)."""
     cfg = cfg or StatsConfig()
     rows = []
-    for i, (label, rs) in enumerate(group(results).items()):
+    for i, g in enumerate(rows_of(results, cfg)):
         cells = {}
         for j, (lane, metric) in enumerate(COLUMNS):
-            if all(lane in r.scores for r in rs):
-                cells[(lane, metric)] = make_cell(rs, lane, metric, cfg, key=100 * i + j)
-        rows.append(Row(label, [r.unit for r in rs], cells))
+            if all(lane in r.scores for r in g.results):
+                cells[(lane, metric)] = make_cell(g.results, lane, metric, cfg, key=100 * i + j)
+        rows.append(Row(g.label, [r.unit for r in g.results], cells, g.base, dict(g.variant)))
     return rows
 
 
 def differences(results: Sequence[EvalResult], pairs: Sequence[Sequence[str]],
                 cfg: StatsConfig | None = None) -> list[Difference]:
-    """``a - b`` for each pair of labels present, per column, with a bootstrap interval.
+    """``a - b`` and P(a > b) for each pair of rows present, per column, with bootstrap intervals.
 
-    Over seeds when both rows have at least two units, else over the episodes of each."""
+    ``a`` and ``b`` are row labels or names (:func:`~memrl.evaluation.rows.matching_rows`).
+    Over seeds when both rows have at least two units, else the difference is over the
+    episodes of each and P(a > b) is left out."""
     cfg = cfg or StatsConfig()
-    by = group(results)
+    groups = rows_of(results, cfg)
     out = []
-    for k, (a, b) in enumerate(pairs):
-        if a not in by or b not in by:
-            continue
-        ra, rb = by[a], by[b]
+    matched = [pair for a, b in pairs for pair in matching_rows(groups, a, b)]
+    for k, (ga, gb) in enumerate(matched):
+        ra, rb = ga.results, gb.results
         for j, (lane, metric) in enumerate(COLUMNS):
             if not all(lane in r.scores for r in ra + rb):
                 continue
-            va = [getattr(r.scores[lane], f"{metric}_score") for r in ra]
-            vb = [getattr(r.scores[lane], f"{metric}_score") for r in rb]
+            va = np.array([score(r, lane, metric) for r in ra])
+            vb = np.array([score(r, lane, metric) for r in rb])
+            key = 10_000 + 100 * k + j
+            p = p_low = p_high = None
             if len(ra) >= 2 and len(rb) >= 2:
-                xs, over = [np.array(va), np.array(vb)], "seeds"
+                xs, over = [va, vb], "seeds"
+                p = bs.point(xs, bs.probability_of_improvement)
+                p_low, p_high = _interval(xs, bs.probability_of_improvement, cfg, key)
             else:
                 xs = [np.concatenate([outcomes(r, lane, metric) for r in rows]) for rows in (ra, rb)]
                 over = "episodes"
-            low, high = _interval(xs, _mean_diff, cfg, key=10_000 + 100 * k + j)
+            low, high = _interval(xs, bs.mean_difference, cfg, key)
             diff = float(np.mean(va) - np.mean(vb))
-            out.append(Difference(a, b, (lane, metric), Cell([diff], diff, low, high, over),
-                                  len(ra), len(rb)))
+            out.append(Difference(ga.label, gb.label, (lane, metric), Cell([diff], diff, low, high, over),
+                                  len(ra), len(rb), p, p_low, p_high))
+        aggregate = over_all_columns(ra, rb, cfg, key=20_000 + 100 * k)
+        if aggregate is not None:
+            out.append(Difference(ga.label, gb.label, ALL, *aggregate))
     return out
+
+
+def over_all_columns(ra: list[EvalResult], rb: list[EvalResult], cfg: StatsConfig,
+                     key: int) -> tuple[Cell, int, int, float, float, float] | None:
+    """The comparison aggregated over the columns both rows have (rliable's tasks): the mean
+    difference over all (seed, column) scores and the mean over columns of P(a > b), with a
+    stratified bootstrap (seeds resampled per column, each row independently). None with
+    fewer than two seeds in a row or fewer than two columns."""
+    cols = [(lane, metric) for lane, metric in COLUMNS if all(lane in r.scores for r in ra + rb)]
+    if len(ra) < 2 or len(rb) < 2 or len(cols) < 2:
+        return None
+    xs = [np.array([[score(r, lane, metric) for lane, metric in cols] for r in rows]) for rows in (ra, rb)]
+    diff = bs.point(xs, bs.mean_difference)
+    low, high = _interval(xs, bs.mean_difference, cfg, key)
+    p = bs.point(xs, bs.probability_of_improvement)
+    p_low, p_high = _interval(xs, bs.probability_of_improvement, cfg, key)
+    return Cell([diff], diff, low, high, "seeds"), len(ra), len(rb), p, p_low, p_high
