@@ -13,7 +13,7 @@ from torchrl.envs.utils import check_env_specs
 from memrl.envs import ENV_ID, batched
 from memrl.envs.batched import BatchedEnvError, BatchedLaneChange, resolve_device
 from memrl.envs.lane_change import LaneChangeEnv
-from memrl.envs.render import LABEL, PALETTE, gray_palette
+from memrl.envs.render import PALETTE, gray_palette
 from memrl.envs.scene import sample_scene
 from memrl.envs.torchrl_env import make_env
 from memrl.modules.scripted import ScriptedDriver
@@ -251,16 +251,6 @@ def test_shared_rasterizer_changes_todays_frames_only_on_car_outlines():
             changed += int(diff.sum())
             total += int(car_before.sum())
     assert 0 < changed < 0.3 * total  # it did change, and only at the edges
-
-
-def test_agent_views_and_learned_car_views_use_the_palette_labels():
-    engine = BatchedLaneChange({"vehicles_count": 0}, 1)
-    engine.reset(seeds=[0])
-    frame = engine.newest_frame()[0]
-    levels = set(frame.unique().tolist())
-    g = gray_palette(PALETTE)
-    assert g["agent"] in levels and g["constant"] not in levels
-    assert LABEL["agent"] == list(PALETTE).index("agent")
 
 
 def test_scene_sampler_is_the_reference_envs_draw():

@@ -24,7 +24,7 @@ from gymnasium.utils.seeding import np_random
 
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import Opponents, make_opponents
-from memrl.envs.render import LABEL, BEVRenderer, View
+from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
 from memrl.envs.scene import max_cars, sample_scene
 from memrl.envs.vehicles import ACTIONS, IDLE, N_ACTIONS
 from memrl.errors import UserError
@@ -156,11 +156,7 @@ class BatchedLaneChange:
         self._ds = torch.tensor([a[0] for a in ACTIONS], dtype=f64, device=dev) * cfg.speed_step
         self._dk = torch.tensor([a[1] for a in ACTIONS], dtype=f64, device=dev) * cfg.curvature_step
         self._weights = [float(getattr(cfg.reward, k)) for k in REWARD_NAMES]
-        self._half = torch.tensor([0.5 * cfg.vehicle_length, 0.5 * cfg.vehicle_width], dtype=f64, device=dev)
         self._diag = float(np.sqrt(cfg.vehicle_length ** 2 + cfg.vehicle_width ** 2))
-        signs = torch.tensor([[-1, -1], [-1, 1], [1, 1], [1, -1]], dtype=f64, device=dev)
-        self._local = signs * self._half  # [4, 2] body corners in the car's frame [m]
-        self._active: torch.Tensor | None = None
 
     # ---------------------------------------------------------------------------- reset
     def reset(self, env_ids: Sequence[int] | torch.Tensor | None = None,
@@ -219,13 +215,14 @@ class BatchedLaneChange:
         reference env that is reset instead of stepped).
         """
         a = check_actions(actions, self.num_envs, self.device)
-        self._active = active
-        car_actions = torch.full(self.present.shape, IDLE, dtype=torch.long, device=self.device)
-        car_actions[:, 0] = a
-        self._apply(car_actions[:, :1], slice(0, 1))  # the agent acts first, then the other cars
+        # Learned cars look before anyone moves; a view shows positions and headings (and the
+        # viewer's own path), which the actions below do not change yet: all cars act at once.
         if self._car_frames is not None and bool(self.is_learned.any()):
-            car_actions[:, 1:] = torch.where(self.is_learned[:, 1:], self._learned_actions()[:, 1:], IDLE)
-        self._apply(car_actions[:, 1:], slice(1, None))
+            car_actions = self._learned_actions(active)
+        else:
+            car_actions = torch.full(self.present.shape, IDLE, dtype=torch.long, device=self.device)
+        car_actions[:, 0] = a
+        self._apply(car_actions)
         self._move()
         self.steps += 1
         self.crashed |= self._agent_collides()
@@ -261,9 +258,9 @@ class BatchedLaneChange:
         """The last frame of every env ``[N, H, W]`` (a view of the ring)."""
         return self._frames[self._head]
 
-    def _apply(self, actions: torch.Tensor, slots: slice) -> None:
-        """Add the speed and curvature changes of the actions to the cars of ``slots``, clamp, round."""
-        cfg, s = self.cfg, self.state[:, slots]
+    def _apply(self, actions: torch.Tensor) -> None:
+        """Add the speed and curvature changes of the actions ``[N, C]`` to every car, clamp, round."""
+        cfg, s = self.cfg, self.state
         low, high = cfg.speed_limits
         speed = torch.clamp(s[..., SPEED] + self._ds[actions], float(low), float(high))
         curv = torch.clamp(s[..., CURVATURE] + self._dk[actions], -cfg.curvature_limit, cfg.curvature_limit)
@@ -288,12 +285,9 @@ class BatchedLaneChange:
         s[..., HEADING] = torch.where(straight, h, new_h)
 
     def _corners(self, cars: torch.Tensor) -> torch.Tensor:
-        """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (highway-env's polygon order)."""
-        c, s = torch.cos(cars[..., HEADING])[..., None], torch.sin(cars[..., HEADING])[..., None]
-        lx, ly = self._local[:, 0], self._local[:, 1]
-        x = c * lx - s * ly + cars[..., X, None]
-        y = s * lx + c * ly + cars[..., Y, None]
-        return torch.stack([x, y], dim=-1)
+        """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (the reference env's formula)."""
+        return body_corners(cars[..., X], cars[..., Y], cars[..., HEADING], self.cfg.vehicle_length,
+                            self.cfg.vehicle_width)
 
     def _lateral_extent(self, agent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         y = self._corners(agent)[..., 1]
@@ -381,9 +375,9 @@ class BatchedLaneChange:
         img = self.renderer.render_batch(*self._as_backend(views))
         return torch.from_numpy(img) if isinstance(img, np.ndarray) else img
 
-    def _learned_actions(self) -> torch.Tensor:
+    def _learned_actions(self, active: torch.Tensor | None) -> torch.Tensor:
         """Actions ``[N, C]`` of the learned cars (others: IDLE) from their own views, through
-        one batched forward pass of the pool."""
+        one batched forward pass of the pool; envs not ``active`` draw no exploration."""
         assert self.learned is not None and self._car_frames is not None
         env_i, slot_i = torch.nonzero(self.is_learned, as_tuple=True)
         state = self.state[env_i]  # [M, C, 5] each learned car's env
@@ -406,9 +400,9 @@ class BatchedLaneChange:
         if eps > 0:  # per env, from the env's generator, in slot order, as the reference does
             chosen_np = chosen.cpu().numpy()
             envs = env_i.cpu().numpy()
-            active = None if self._active is None else self._active.cpu().numpy()
+            counts = None if active is None else active.cpu().numpy()
             for e in np.unique(envs):
-                if active is not None and not active[e]:
+                if counts is not None and not counts[e]:
                     continue
                 rows = np.flatnonzero(envs == e)
                 rng = self.rngs[int(e)]

@@ -61,19 +61,6 @@ class View:
     longitudinal_scale: float
 
 
-def car_corners(vehicles: Sequence[CurvatureVehicle]) -> np.ndarray:
-    """Body corners ``[N, 4, (x, y)]`` [m] of cars, from position, heading and size."""
-    pos = np.array([c.position for c in vehicles], dtype=np.float64).reshape(-1, 2)
-    heading = np.array([c.heading for c in vehicles], dtype=np.float64)
-    half = 0.5 * np.array([[c.LENGTH, c.WIDTH] for c in vehicles]).reshape(-1, 2)
-    signs = np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]], dtype=np.float64)
-    local = signs[None] * half[:, None, :]
-    cos, sin = np.cos(heading)[:, None], np.sin(heading)[:, None]
-    x = local[..., 0] * cos - local[..., 1] * sin
-    y = local[..., 0] * sin + local[..., 1] * cos
-    return np.stack([x, y], axis=-1) + pos[:, None, :]
-
-
 class _Ops:
     """The few array operations the rasterizer needs, on numpy arrays or torch tensors."""
 
@@ -89,7 +76,6 @@ class _Ops:
     sin: Any
 
     def __init__(self, xp: Any) -> None:
-        self.xp = xp
         self.is_torch = xp is torch
         self.inf = np.float32(np.inf) if not self.is_torch else torch.tensor(np.inf, dtype=torch.float32)
         for name in ("ceil", "floor", "where", "minimum", "maximum", "cos", "sin"):
@@ -128,11 +114,40 @@ class _Ops:
             return torch.zeros(shape, dtype=like.dtype, device=like.device)
         return np.zeros(shape, dtype=like.dtype)
 
+    def asarray(self, values: list[float], like: Any) -> Any:
+        """A 1-D array of ``values`` with ``like``'s dtype (and device)."""
+        if self.is_torch:
+            return torch.tensor(values, dtype=like.dtype, device=like.device)
+        return np.asarray(values, dtype=like.dtype)
+
+    def arange(self, n: int, device: torch.device) -> Any:
+        return torch.arange(n, device=device) if self.is_torch else np.arange(n)
+
     def empty_u8(self, n: int, device: torch.device) -> Any:
         return torch.empty(n, dtype=torch.uint8, device=device) if self.is_torch else np.empty(n, np.uint8)
 
 
 NUMPY, TORCH = _Ops(np), _Ops(torch)
+_CORNER_SIGNS = ((-1, -1), (-1, 1), (1, 1), (1, -1))  # highway-env's polygon order
+
+
+def body_corners(x: Any, y: Any, heading: Any, length: float, width: float) -> Any:
+    """Body corners ``[..., 4, (x, y)]`` [m] of cars at (x, y) [m] with ``heading`` [rad], for
+    numpy arrays or torch tensors ``[...]`` (the reference env and the batched engine)."""
+    x_ = TORCH if isinstance(x, torch.Tensor) else NUMPY
+    cos, sin = x_.cos(heading)[..., None], x_.sin(heading)[..., None]
+    lx = x_.asarray([0.5 * length * a for a, _ in _CORNER_SIGNS], like=cos)
+    ly = x_.asarray([0.5 * width * b for _, b in _CORNER_SIGNS], like=cos)
+    return x_.stack([lx * cos - ly * sin + x[..., None], lx * sin + ly * cos + y[..., None]], axis=-1)
+
+
+def car_corners(vehicles: Sequence[CurvatureVehicle]) -> np.ndarray:
+    """Body corners ``[N, 4, (x, y)]`` [m] of highway-env cars (all of one size)."""
+    state = np.array([[c.position[0], c.position[1], c.heading] for c in vehicles], dtype=np.float64)
+    state = state.reshape(-1, 3)
+    car = vehicles[0] if vehicles else None
+    length, width = (car.LENGTH, car.WIDTH) if car is not None else (0.0, 0.0)
+    return body_corners(state[:, 0], state[:, 1], state[:, 2], length, width)
 
 
 def arc_points(state: Any, s: Any) -> Any:
@@ -248,7 +263,7 @@ class BEVRenderer:
         n_views, size = len(center), v.height * v.width
         # Gray: paint the shades themselves; RGB: paint labels, then look their colours up.
         values = k["table"] if self.channels == 1 else k["labels"]
-        base = start + self._arange(x_, n_views) * size  # [V] offset of each picture
+        base = start + x_.arange(n_views, self.device) * size  # [V] offset of each picture
         self._background(x_, center, target_lane, values, flat, base, start)
         self._paint_cars(x_, flat, base, center, cars, car_label, values)
         if path is not None and self.path_length > 0:
@@ -258,9 +273,6 @@ class BEVRenderer:
             ok = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width)
             index = x_.where(ok, base[:, None] + row * v.width + col, flat.shape[0] - 1)
             flat[index] = values[LABEL["agent"]]
-
-    def _arange(self, x_: _Ops, n: int) -> Any:
-        return torch.arange(n, device=self.device) if x_.is_torch else np.arange(n)
 
     def _background(self, x_: _Ops, center: Any, target_lane: Any, values: Any, flat: Any, base: Any,
                     start: int) -> None:
@@ -301,7 +313,7 @@ class BEVRenderer:
         r0, r1 = x_.i64(x_.clip(r0, 0, v.height)), x_.i64(x_.clip(r1, 0, v.height))
         # +1 where a dash starts, -1 where it ends, summed down the picture
         count = x_.zeros((n_views, v.height + 1), like=r0)
-        views = self._arange(x_, n_views)[:, None] + r0 * 0
+        views = x_.arange(n_views, self.device)[:, None] + r0 * 0
         x_.add_at(count, (views, r0), 1)
         x_.add_at(count, (views, r1), -1)
         dash = x_.cumsum(count[:, :-1], axis=1) > 0  # [V, H]
