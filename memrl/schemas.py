@@ -125,6 +125,9 @@ class TrainSchema:
     """Name of the command's output folder (``outputs/<task_name>/...``)."""
     seed: int = spec(ge=0, le=SEED_MAX)
     """Seed of the run: weights, exploration, episode scenes."""
+    device: str = MISSING
+    """Where the network, loss, optimizer, replay storage and batched envs live: ``auto``
+    (CUDA when present), ``cpu``, ``cuda`` or ``cuda:K``."""
     total_frames: int | None = spec(ge=1)
     """Env-step budget (null: no limit); checked at episode ends."""
     total_episodes: int | None = spec(ge=1)
@@ -164,6 +167,24 @@ def check_env(node: Any, key: str = "env") -> None:
     validate_env_config(values)  # type: ignore[arg-type]
 
 
+def check_device(value: Any, key: str) -> None:
+    """``auto``, ``cpu``, ``cuda`` or ``cuda:K`` naming a device this machine has."""
+    import re
+
+    text = str(value)
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", text):
+        raise config_error(key, f"expected auto, cpu, cuda or cuda:K, got {value!r}")
+    if text.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise config_error(key, f"{text}: CUDA is not available on this machine "
+                               "(use device=cpu, or device=auto to take CUDA where present)")
+        index = int(text.split(":")[1]) if ":" in text else 0
+        if index >= torch.cuda.device_count():
+            raise config_error(key, f"{text}: only {torch.cuda.device_count()} CUDA device(s) here")
+
+
 def check_train(cfg: DictConfig) -> None:
     """Every value of a train config, and the folders it names (resume, demos_path)."""
     from memrl.dqn.config import check_train_config
@@ -175,6 +196,7 @@ def check_train(cfg: DictConfig) -> None:
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
     check_env(cfg.env)
+    check_device(cfg.device, "device")
     if cfg.resume is not None and not Path(cfg.resume).is_dir():
         raise config_error("resume", f"no run folder {cfg.resume}")
     demos = cfg.mode.get("demos_path")

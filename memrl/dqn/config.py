@@ -132,6 +132,9 @@ class Stage2Config:
     """Final epsilon."""
     eps_decay_frames: int = 50_000
     """Env steps of the linear decay."""
+    demo_fraction: float = 0.0
+    """Share of stage 2's buffer (and of each stratified batch) that the prior knowledge keeps
+    holding, as in mode A (0: none, the paper's B: stage 2 trains as Default)."""
 
 
 @dataclass
@@ -192,5 +195,7 @@ def check_train_config(cfg: DictConfig) -> None:
     s2 = m.stage2
     _need(0 <= s2.eps_end <= s2.eps_start <= 1, "mode.stage2.eps_start",
           "need 0 <= eps_end <= eps_start <= 1")
+    _need(0 <= s2.demo_fraction < 1, "mode.stage2.demo_fraction",
+          f"must be in [0, 1), got {s2.demo_fraction}")
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")

@@ -40,14 +40,15 @@ def native_bf16() -> bool:
         return False
 
 
-def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32)) -> bool:
+def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32),
+                 device: torch.device | str = "cpu") -> bool:
     """``torch.compile`` the network's forward in place, then run it once per batch size, with
     and without gradients; on any failure (no C++ compiler, an unsupported op) warn and put the
     eager forward back. Returns whether the network stays compiled."""
     try:
         qnet.compile(dynamic=False)
         for n in batch_sizes:
-            x = torch.zeros(n, 4, 84, 84, dtype=torch.uint8)
+            x = torch.zeros(n, 4, 84, 84, dtype=torch.uint8, device=device)
             qnet(x).sum().backward()
             with torch.no_grad():
                 qnet(x)
@@ -69,17 +70,21 @@ class Learner:
     update multiplies it by 0.5.
     """
 
-    def __init__(self, cfg: AgentConfig | Any) -> None:
-        self.cfg = cfg
+    def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu") -> None:
+        self.cfg, self.device = cfg, torch.device(device)
         self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)))
+        self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
-        self.qnet.conv_dtype = conv_dtype(str(_option(cfg, "precision", "float32")))
+        precision = str(_option(cfg, "precision", "float32"))
+        # bf16 autocast is a CPU speed-up (oneDNN); on CUDA `auto` keeps float32
+        self.qnet.conv_dtype = conv_dtype(precision) if self.device.type == "cpu" or \
+            precision != "auto" else None
         if _option(cfg, "channels_last", False):
             # Before DQNLoss copies the parameters: online and target weights, and Adam's
             # moments, all stay channels_last (NHWC convs and pools run faster on CPU).
             self.qnet.to(memory_format=torch.channels_last)
         self.compiled = bool(_option(cfg, "compile", False)) and compile_qnet(
-            self.qnet, (1, int(cfg.batch_size)))
+            self.qnet, (1, int(cfg.batch_size)), self.device)
         self.loss_module = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                                    double_dqn=True, action_space="categorical")
         self.loss_module.make_value_estimator(gamma=cfg.gamma)
