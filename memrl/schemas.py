@@ -426,6 +426,11 @@ class MemoryBench:
 class E2EBench:
     total_frames: int = spec(ge=1)
     overlap: list[bool] = MISSING
+    num_envs: list[int] = spec(ge=1, nonempty=True)
+    gpu_num_envs: list[int] = spec(ge=1)
+    gpu_batch_sizes: list[int] = spec(ge=1)
+    gpu_total_frames: int = spec(ge=1)
+    device: str = MISSING
     learner_seconds: float = spec(gt=0)
     seed: int = spec(ge=0, le=SEED_MAX)
     overrides: list[str] = MISSING
