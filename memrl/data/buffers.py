@@ -34,7 +34,7 @@ def agent_storage(capacity: int, compact: bool = True) -> Storage:
     return FrameStackStorage(capacity) if compact else LazyTensorStorage(capacity)
 
 
-def agent_buffer(capacity: int, batch_size: int, compact: bool = True, streams: int = 1, device=None) -> TensorDictReplayBuffer:
+def agent_buffer(capacity: int, batch_size: int, compact: bool = True) -> TensorDictReplayBuffer:
     """FIFO replay of the agent's own transitions, uniform sampling."""
     return TensorDictReplayBuffer(storage=agent_storage(capacity, compact), batch_size=batch_size)
 
@@ -68,7 +68,7 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
     """
 
     def __init__(self, demos: TensorDictBase, capacity: int, demo_fraction: float,
-                 batch_size: int, sampling: str = "stratified", compact: bool = True, streams: int = 1, device=None) -> None:
+                 batch_size: int, sampling: str = "stratified", compact: bool = True) -> None:
         if sampling not in ("stratified", "proportional"):
             raise ValueError(f"sampling must be stratified or proportional, got {sampling!r}")
         n_demo = int(round(demo_fraction * capacity))

@@ -17,12 +17,14 @@ from tensordict import TensorDictBase
 from torchrl.modules import EGreedyModule
 
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, demo_buffer
-from memrl.dqn.learner import Learner, make_exploration
+from memrl.dqn.exploration import make_exploration
+from memrl.dqn.learner import Learner
 from memrl.dqn.stage1 import split_demos
 
 FIRST_STAGE = {"default": "default", "A": "A", "B": "B1"}
 """The stage a run of each mode starts in."""
 NEXT_STAGE = {"B1": "B2"}
+EXPLORATION_OPTIONS = ("ez_mu", "ez_max_duration", "temperature_start", "temperature_end")
 """The stage that follows a finished offline stage."""
 
 
@@ -70,8 +72,11 @@ def build_stage(name: str, cfg: DictConfig, learner: Learner, demos: TensorDictB
         extra = {"device": device} if device.type != "cpu" else {}
         return Stage(name, demo_buffer(train, batch, compact=compact, **extra), None,
                      held_out.to(device))
-    explore = make_exploration(*((m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames)
-                                 if name == "B2" else (a.eps_start, a.eps_end, a.eps_decay_frames)))
+    schedule = (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames) if name == "B2" \
+        else (a.eps_start, a.eps_end, a.eps_decay_frames)
+    explore = make_exploration(*schedule, kind=str(a.get("exploration", "epsilon")),
+                               num_envs=num_envs,
+                               **{k: a[k] for k in EXPLORATION_OPTIONS if a.get(k) is not None})
     explore.to(device)
     share = float(m.demo_fraction) if name == "A" else \
         float(m.stage2.get("demo_fraction", 0.0)) if name == "B2" else 0.0

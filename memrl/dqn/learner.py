@@ -7,12 +7,11 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Composite
-from torchrl.modules import EGreedyModule, QValueActor
+from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate
 
 from memrl.dqn.config import AgentConfig
-from memrl.envs.vehicles import N_ACTIONS
+from memrl.dqn.exploration import AlwaysExploring, make_exploration  # noqa: F401 (re-export)
 from memrl.modules.qnet import QNetwork, make_q_actor
 
 
@@ -172,30 +171,3 @@ class Learner:
     def reset_optimizer(self) -> None:
         """Fresh Adam moments (mode B stage 2 starts a new optimisation)."""
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)
-
-
-class AlwaysExploring(EGreedyModule):
-    """TorchRL's annealed epsilon-greedy, explorative whatever the process-wide exploration type.
-
-    ``EGreedyModule`` acts greedily while ``exploration_type()`` is deterministic, a process
-    global that every TorchRL loss sets while it runs: with the learner updating in another
-    thread (``agent.overlap``), exploration would switch off at random moments. Same draws
-    (``torch.rand``, then the spec's ``rand``) as the parent's explorative branch.
-    """
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(self.action_key)
-        explore = torch.rand(tensordict.shape, device=self.eps.device) < self.eps
-        explore = explore.reshape(explore.shape + (1,) * (action.ndim - explore.ndim))
-        spec = self.spec[self.action_key] if isinstance(self.spec, Composite) else self.spec
-        spec = spec if spec.shape == action.shape else spec.expand(action.shape)
-        tensordict.set(self.action_key, torch.where(explore, spec.rand().to(action.device), action))
-        return tensordict
-
-
-def make_exploration(eps_start: float, eps_end: float, decay_frames: int) -> EGreedyModule:
-    """TorchRL's linearly annealed epsilon-greedy module over the 9 actions."""
-    from torchrl.data import Categorical
-
-    return AlwaysExploring(Categorical(N_ACTIONS, dtype=torch.int64), eps_init=eps_start,
-                           eps_end=eps_end, annealing_num_steps=decay_frames)
