@@ -142,7 +142,7 @@ class Trainer:
                 if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
                     self.save_checkpoint()
             batches = self._due_batches()  # the rounds the last steps made due
-            self._book(batches, self.rounds.run(batches, lambda: None)[0])
+            self._book(batches, self.rounds.flush(batches))
         finally:
             self.rounds.close()
             bar.close()
@@ -309,6 +309,7 @@ class Trainer:
             "learner": self.learner.state_dict(),
             "explore": self.stage.explore.state_dict() if online else None,  # type: ignore[union-attr]
             "collector": self.collector.state_dict() if online else None,
+            "rounds": self.rounds.state_dict(),
             "acc": self._acc,
             "recent": list(self._recent),
             "rng": ckpt.rng_state(),
@@ -350,7 +351,7 @@ class Trainer:
         self.records.rewind(self.counters.episodes, self.counters.update_rows)
         self.periodic.rewind(self.counters.episodes)
         self.self_play.restore(self.counters.episodes)
-        self.rounds.sync()
+        self.rounds.load_state_dict(state.get("rounds"))
         self._checkpointed_at = self.counters.episodes
         self.resumed_from = self.counters.episodes
         log.info("resumed %s at stage %s: %d episodes, %d frames, %d updates", where,

@@ -14,7 +14,7 @@ import copy
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import torch
 from tensordict import TensorDictBase
@@ -43,6 +43,8 @@ class RoundRunner:
             for module in self.acting_net.modules():  # a copied compiled forward calls the original
                 module._compiled_call_impl = None
         self.update_seconds = 0.0
+        self.stale = False
+        """The acting copy still holds the weights before the last round (see :meth:`flush`)."""
 
     def run(self, batches: Sequence[TensorDictBase], collect: Callable[[], T]) -> tuple[list[float], T]:
         """The updates of ``batches`` and ``collect()``: overlapped, or updates first."""
@@ -60,9 +62,32 @@ class RoundRunner:
             finally:
                 losses, seconds = future.result()  # re-raises the update's error, if any
         self.update_seconds += seconds
-        if batches:
+        if batches or self.stale:
             self.sync()
         return losses, out
+
+    def flush(self, batches: Sequence[TensorDictBase]) -> list[float]:
+        """The rounds due at the end of a run, with the acting copy left as it was: the steps a
+        longer run (or this one resumed with a larger budget) collects next would be collected
+        during these updates, with the weights before them."""
+        t0 = time.perf_counter()
+        losses = [self.learner.update(b) for b in batches]
+        self.update_seconds += time.perf_counter() - t0
+        self.stale = self.stale or (bool(batches) and self.acting_net is not self.learner.actor)
+        return losses
+
+    def state_dict(self) -> dict[str, Any]:
+        """The acting copy when it differs from the online network (after :meth:`flush`)."""
+        return {"stale": self.stale,
+                "acting": {k: v.cpu() for k, v in self.acting_net.state_dict().items()}
+                if self.stale else None}
+
+    def load_state_dict(self, state: dict[str, Any] | None) -> None:
+        self.stale = bool(state and state["stale"])
+        if state and state["acting"] is not None:
+            self.acting_net.load_state_dict(state["acting"])
+        else:
+            self.sync()
 
     def sync(self) -> None:
         """Refresh the acting copy from the online network (overlap mode)."""
