@@ -66,6 +66,7 @@ EPISODE_KEYS = (
     "target_lane", "initial_lane", "initial_speed", "initial_offset", "initial_heading",
     "initial_curvature", "vehicles_count", "other_speed",
     "spawn_ahead", "spawn_behind", "spawn_gap", "spawn_attempts", "opponent", "scene",
+    "num_envs",  # how many envs a trainer steps at once: the same task, the same transitions
 )
 """Env-config keys left out of :func:`env_config_hash`: they choose which episodes are drawn
 (start and target lanes, the agent's starting pose, how many other cars, where, how fast and
@@ -94,8 +95,7 @@ def _canonical(value: Any) -> Any:
     return value
 
 
-LATER_KEYS: dict[tuple[str, ...], Any] = {("bev", "path_length"): 0.0, ("frame_stack",): 1,
-                                          ("num_envs",): 1}
+LATER_KEYS: dict[tuple[str, ...], Any] = {("bev", "path_length"): 0.0, ("frame_stack",): 1}
 """Env keys added after datasets were first recorded, with the value that draws what older
 versions drew: at that value a key is left out of the hash, so older datasets (and their
 hashes) stay valid; any other value changes the hash."""
