@@ -198,8 +198,8 @@ class Trainer:
         if frames < self.schedule.warmup_frames:
             td["action"] = torch.randint(N_ACTIONS, td.shape, device=td.device)
             return
+        assert self.acting is not None and self.stage.explore is not None
         self.acting(td)
-        assert self.stage.explore is not None
         self.stage.explore.step(self.num_envs)
 
     def _episodes_done(self, ends: list[EpisodeEnd]) -> None:
@@ -230,7 +230,7 @@ class Trainer:
                                         self.device)
         self.stage1_checks = Stage1Checks(self.cfg.mode.stage1, self.cfg.env, self.stage.held_out,
                                           self.stage1) if self.stage.offline else None
-        self.acting = None if self.stage.offline else TensorDictSequential(
+        self.acting: TensorDictSequential | None = None if self.stage.offline else TensorDictSequential(
             self.rounds.acting_net, self.stage.explore)
 
     def _finish_stage1(self) -> None:
