@@ -1,10 +1,10 @@
 """Where the frames of a write go in the frame ring of :mod:`memrl.data.frame_store`.
 
-Everything here is vectorised torch on the data's device (no per-row Python loop, no copy to
-the host). The pixel-heavy steps (row comparisons, ring gathers and scatters) go through
-:class:`Pixels`, which uses numpy on CPU: a plain copy per frame and no thread pool, where
-torch's index kernel is 10-100x slower for ``[n, 84, 84]`` uint8 rows (worst with 2 threads on
-a busy 2-core machine).
+Everything here is vectorised (no per-row Python loop) on the data's device (no copy to the
+host), written once for two array backends (:class:`Pixels`): torch, and on CPU numpy, for its
+plain copy per frame without a thread pool where torch's index kernel is 10-100x slower for
+``[n, 84, 84]`` uint8 rows (worst with 2 threads on a busy 2-core machine), and for its lower
+per-call overhead on the small integer arrays of a one-step write.
 
 Rows and streams: row ``r`` of a write of ``n`` rows belongs to stream ``r % S``; a write holds
 whole steps (``n`` a multiple of ``S``), so consecutive writes keep the same rows per stream.
@@ -13,7 +13,9 @@ whole steps (``n`` a multiple of ``S``), so consecutive writes keep the same row
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 
@@ -29,7 +31,10 @@ def ring_frames(max_size: int, stack: int = 4, streams: int = 1) -> int:
 
 @dataclass
 class Pixels:
-    """Pixel-heavy array steps, numpy on CPU (see the module docstring) and torch elsewhere.
+    """Array backend of the frame ring: numpy on CPU (see the module docstring), torch elsewhere.
+
+    Plans and ring work take and give the backend's arrays (numpy arrays or torch tensors,
+    through the methods both share); :meth:`arr` and :meth:`tensor` convert, zero-copy.
 
     Args:
         numpy: use numpy (CPU tensors only).
@@ -37,33 +42,32 @@ class Pixels:
 
     numpy: bool
 
-    def rows_equal(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    def arr(self, t: torch.Tensor) -> Any:
+        """The backend's array sharing ``t``'s memory."""
+        return t.numpy() if self.numpy else t
+
+    def tensor(self, a: Any) -> torch.Tensor:
+        """The torch tensor sharing ``a``'s memory."""
+        return torch.from_numpy(a) if self.numpy else a
+
+    def where(self, cond: Any, a: Any, b: Any) -> Any:
+        return np.where(cond, a, b) if self.numpy else torch.where(cond, a, b)
+
+    def zeros(self, shape: tuple[int, ...], like: Any, boolean: bool = False) -> Any:
+        """Zeros on ``like``'s device, bool or int64."""
+        if self.numpy:
+            return np.zeros(shape, dtype=bool if boolean else np.int64)
+        return torch.zeros(shape, dtype=torch.bool if boolean else torch.long, device=like.device)
+
+    @staticmethod
+    def rows_equal(a: Any, b: Any) -> Any:
         """``[n]`` bool: row ``i`` of ``a`` equals row ``i`` of ``b`` (all elements)."""
-        n = a.shape[0]
-        if self.numpy:
-            return torch.from_numpy((a.numpy() == b.numpy()).reshape(n, -1).all(1))
-        return (a == b).reshape(n, -1).all(1)
+        return (a == b).reshape(a.shape[0], -1).all(1)
 
-    def frames_differ(self, pixels: torch.Tensor) -> torch.Tensor:
-        """``[n, stack - 1]`` bool: frame ``j + 1`` of a stack differs from frame ``j``."""
-        n, k = pixels.shape[0], pixels.shape[1] - 1
-        if self.numpy:
-            x = pixels.numpy()
-            return torch.from_numpy((x[:, 1:] != x[:, :-1]).reshape(n, k, -1).any(2))
-        return (pixels[:, 1:] != pixels[:, :-1]).reshape(n, k, -1).any(2)
-
-    def gather(self, ring: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
-        """``ring[slots]`` as a new contiguous tensor."""
-        if self.numpy:
-            return torch.from_numpy(ring.numpy()[slots.numpy()])
-        return ring[slots]
-
-    def scatter(self, ring: torch.Tensor, slots: torch.Tensor, frames: torch.Tensor,
-                mask: torch.Tensor, count: int) -> None:
+    def scatter(self, ring: Any, slots: Any, frames: Any, mask: Any, count: int) -> None:
         """``ring[slots[mask]] = frames[mask]``; ``count`` is ``mask.sum()``, known on the host."""
         if self.numpy:
-            m = mask.numpy()
-            ring.numpy()[slots.numpy()[m]] = frames.numpy()[m]
+            ring[slots[mask]] = frames[mask]
             return
         # nonzero_static: the selected rows without a device-to-host sync for their count
         idx = torch.nonzero_static(mask.reshape(-1), size=count).reshape(-1)
@@ -72,25 +76,30 @@ class Pixels:
 
 @dataclass
 class Plan:
-    """Frame refs of the rows of a write and the frames it pushes (tensors on the data's device).
+    """Frame refs of the rows of a write and the frames it pushes (backend arrays).
 
     Attributes:
-        refs: ``[n, stack + 1]`` global frame counters: the ``stack`` frames of ``pixels``, then
-            the newest frame of ``("next", "pixels")``.
+        refs: ``[n, stack + 1]`` int64 global frame counters: the ``stack`` frames of
+            ``pixels``, then the newest frame of ``("next", "pixels")``.
+        slots: ``refs % ring_size``, their ring slots.
         pushed: ``[n, stack + 1]`` bool: which of those frames this write pushes (frame ``j <
             stack`` is ``pixels[:, j]``, frame ``stack`` is ``next_pixels[:, -1]``).
-        stats: ``[3]`` int64: frames pushed, the lowest ref of the write, rows whose next stack
-            is not their stack shifted by one frame. One ``tolist()`` reads them (one sync).
+        stats: frames pushed, the lowest ref of the write, rows whose next stack is not their
+            stack shifted by one frame: ints (numpy) or a ``[3]`` tensor on the device.
     """
 
-    refs: torch.Tensor
-    pushed: torch.Tensor
-    stats: torch.Tensor
+    refs: Any
+    slots: Any
+    pushed: Any
+    stats: torch.Tensor | list[int]
+
+    def read_stats(self) -> list[int]:
+        """:attr:`stats` on the host: one device-to-host sync on a device."""
+        return self.stats.tolist() if isinstance(self.stats, torch.Tensor) else self.stats
 
 
-def plan_write(pixels: torch.Tensor, next_pixels: torch.Tensor, head: int, streams: int,
-               last: torch.Tensor, last_stack: torch.Tensor | None, valid: torch.Tensor | None,
-               ops: Pixels) -> Plan:
+def plan_write(p: Any, q: Any, head: int, streams: int, last: Any | None, last_stack: Any | None,
+               ops: Pixels, ring_size: int = 1) -> Plan:
     """Plan a write of ``n`` rows (``n`` a multiple of ``streams``) into a ring.
 
     Row ``r`` continues its stream (reuses refs, pushes only its new frame) when its stack
@@ -100,46 +109,55 @@ def plan_write(pixels: torch.Tensor, next_pixels: torch.Tensor, head: int, strea
     ``stack``), then its new frame.
 
     Args:
-        pixels, next_pixels: ``[n, stack, H, W]`` stacks.
+        p, q: ``pixels`` and ``("next", "pixels")``, ``[n, stack, H, W]`` backend arrays.
         head: frames pushed so far (the counter of the next push).
         streams: interleaved streams ``S``.
-        last: ``[S, stack]`` refs of each stream's last ``next`` stack (any value where unset).
-        last_stack: ``[S, stack, H, W]`` their content; None when no stream has one.
-        valid: ``[S]`` bool, streams whose ``last`` is set (None: all of them).
-        ops: pixel backend.
+        last: ``[S, stack]`` refs of each stream's last ``next`` stack; None before the first
+            write.
+        last_stack: ``[S, stack, H, W]`` their content; None before the first write.
+        ops: array backend.
+        ring_size: frames in the ring (for :attr:`Plan.slots`).
 
     Returns:
         The :class:`Plan`.
     """
-    n, stack = pixels.shape[0], pixels.shape[1]
-    dev = pixels.device
-    shifted = ops.rows_equal(next_pixels[:, :-1], pixels[:, 1:])
-    cont = torch.zeros(n, dtype=torch.bool, device=dev)
+    n, stack = p.shape[0], p.shape[1]
+    shifted = ops.rows_equal(q[:, :-1], p[:, 1:])
+    cont = ops.zeros((n,), p, boolean=True)
     if n > streams:
-        cont[streams:] = ops.rows_equal(pixels[streams:], next_pixels[:-streams])
+        cont[streams:] = ops.rows_equal(p[streams:], q[:-streams])
     if last_stack is not None:
-        first = ops.rows_equal(pixels[:streams], last_stack)
-        cont[:streams] = first if valid is None else first & valid
-    pushed = torch.ones((n, stack + 1), dtype=torch.bool, device=dev)
-    pushed[:, 1:stack] = ops.frames_differ(pixels)
+        cont[:streams] = ops.rows_equal(p[:streams], last_stack)
+    if last is None:
+        last = ops.zeros((streams, stack), p)
+    pushed = ops.zeros((n, stack + 1), p, boolean=True)
+    pushed[:, 0] = pushed[:, stack] = True
+    pushed[:, 1:stack] = (p[:, 1:] != p[:, :-1]).reshape(n, stack - 1, -1).any(2)
     pushed[:, :stack] &= ~cont[:, None]
     # counter of the last frame pushed at or before each position (row-major)
     ctr = pushed.reshape(-1).cumsum(0).reshape(n, stack + 1) + (head - 1)
-    # refs: a continuation takes its stream's previous next stack, column by column from the
-    # newest, so each column reads a column already final (rows r - S, or ``last``)
-    ext = torch.zeros((streams + n, stack + 1), dtype=torch.long, device=dev)
-    ext[:streams, 1:] = last
-    ext[streams:, stack] = ctr[:, stack]
-    for j in range(stack - 1, -1, -1):
-        ext[streams:, j] = torch.where(cont, ext[:n, j + 1], ctr[:, j])
-    refs = ext[streams:]
-    stats = torch.stack([pushed.sum(), refs[:, 0].min(), (~shifted).sum()])
-    return Plan(refs=refs, pushed=pushed, stats=stats)
+    # refs: a continuation takes its stream's previous next stack (row r - S, or ``last``)
+    if n == streams:  # one step: every previous next stack is in ``last``
+        refs = ctr
+        refs[:, :stack] = ops.where(cont[:, None], last, ctr[:, :stack])
+    else:  # column by column from the newest, so each reads a column already final
+        ext = ops.zeros((streams + n, stack + 1), p)
+        ext[:streams, 1:] = last
+        ext[streams:, stack] = ctr[:, stack]
+        for j in range(stack - 1, -1, -1):
+            ext[streams:, j] = ops.where(cont, ext[:n, j + 1], ctr[:, j])
+        refs = ext[streams:]
+    stats: torch.Tensor | list[int]
+    if ops.numpy:
+        stats = [int(pushed.sum()), int(refs[:, 0].min()), int((~shifted).sum())]
+    else:
+        stats = torch.stack([pushed.sum(), refs[:, 0].min(), (~shifted).sum()])
+    return Plan(refs=refs, slots=refs % ring_size, pushed=pushed, stats=stats)
 
 
-def first_bad(pixels: torch.Tensor, next_pixels: torch.Tensor, ops: Pixels) -> int:
+def first_bad(p: Any, q: Any, ops: Pixels) -> int:
     """Index of the first row whose next stack is not its stack shifted by one frame."""
-    ok = ops.rows_equal(next_pixels[:, :-1], pixels[:, 1:])
+    ok = ops.tensor(ops.rows_equal(q[:, :-1], p[:, 1:]))
     return int(torch.nonzero(~ok)[0, 0])
 
 
@@ -156,13 +174,13 @@ def count_frames(data: TensorDictBase, pixels_key: str = "pixels", chunk: int = 
         raise ValueError(f"{len(data)} rows are not whole steps of {streams} streams")
     ops, head = Pixels(numpy=True), 0
     step = max(streams, chunk // streams * streams)
-    last = torch.zeros((streams, data.get(pixels_key).shape[1]), dtype=torch.long)
+    last = np.zeros((streams, data.get(pixels_key).shape[1]), dtype=np.int64)
     last_stack = None
     for start in range(0, len(data), step):
         part = data[start:start + step]
-        p, q = part.get(pixels_key).cpu(), part.get(("next", pixels_key)).cpu()
-        plan = plan_write(p, q, head, streams, last, last_stack, None, ops)
-        pushes, _, bad = plan.stats.tolist()
+        p, q = part.get(pixels_key).cpu().numpy(), part.get(("next", pixels_key)).cpu().numpy()
+        plan = plan_write(p, q, head, streams, last, last_stack, ops)
+        pushes, _, bad = plan.read_stats()
         if bad:
             raise ValueError(not_shifted_message(start + first_bad(p, q, ops)))
         head += pushes

@@ -130,10 +130,12 @@ class FrameStackStorage(LazyTensorStorage):
         self._dev = torch.device(self.device)
         self._ops = Pixels(numpy=self._dev.type == "cpu" if numpy is None else bool(numpy))
         self._ring: torch.Tensor | None = None
+        self._ring_a: Any = None  # the ring as a backend array (same memory)
         self._head = 0  # frames pushed so far
-        self._last = torch.zeros((self.streams, self.stack), dtype=torch.long, device=self._dev)
-        self._valid = torch.zeros(self.streams, dtype=torch.bool, device=self._dev)
-        self._any_last = False  # some stream has a last stack
+        # refs of each stream's last ``next`` stack and their slots (backend arrays), None
+        # before the first write: whole-step writes give every stream one at once
+        self._last: Any = None
+        self._last_slots: Any = None
         self._live_lb: float = math.inf  # a lower bound of the refs of live transitions
 
     # ------------------------------------------------------------------ write
@@ -164,35 +166,38 @@ class FrameStackStorage(LazyTensorStorage):
         if next_pixels.shape != pixels.shape:
             raise ValueError(f"pixels {tuple(pixels.shape)} and next pixels "
                              f"{tuple(next_pixels.shape)} differ in shape")
-        p, q = pixels.to(self._dev), next_pixels.to(self._dev)
+        ops, n = self._ops, len(pixels)
+        p, q = ops.arr(pixels.to(self._dev)), ops.arr(next_pixels.to(self._dev))
         last_stack = None
-        if self._any_last and self._ring is not None:
-            last_stack = self._ops.gather(self._ring, self._last % self.ring_size)
-        plan = plan_write(p, q, self._head, self.streams, self._last, last_stack, self._valid,
-                          self._ops)
-        pushes, new_min, bad = plan.stats.tolist()  # the write's one sync
+        if self._last is not None and self._ring_a is not None:
+            last_stack = self._ring_a[self._last_slots]
+        plan = plan_write(p, q, self._head, self.streams, self._last, last_stack, ops,
+                          self.ring_size)
+        pushes, new_min, bad = plan.read_stats()  # the write's one sync
         if bad:
-            raise ValueError(not_shifted_message(first_bad(p, q, self._ops)))
+            raise ValueError(not_shifted_message(first_bad(p, q, ops)))
         head = self._head + pushes
-        self._check_live(new_min, len(p), slots, head)
+        self._check_live(new_min, n, slots, head)
         if self._ring is None:
             # Touched now (zero_), so the resident size is the bound from the first write on.
-            self._ring = torch.empty((self.ring_size, *p.shape[-2:]), dtype=p.dtype,
-                                     device=self._dev).zero_()
-        ring_slots = plan.refs % self.ring_size
-        if self._ops.numpy:  # the two sources, without a concatenated copy
-            self._ops.scatter(self._ring, ring_slots[:, :-1], p, plan.pushed[:, :-1], pushes - len(p))
-            self._ops.scatter(self._ring, ring_slots[:, -1:], q[:, -1:], plan.pushed[:, -1:], len(p))
+            self._set_ring(torch.empty((self.ring_size, *pixels.shape[-2:]), dtype=pixels.dtype,
+                                       device=self._dev).zero_())
+        if ops.numpy:  # the two sources, without a concatenated copy
+            ops.scatter(self._ring_a, plan.slots[:, :-1], p, plan.pushed[:, :-1], pushes - n)
+            ops.scatter(self._ring_a, plan.slots[:, -1:], q[:, -1:], plan.pushed[:, -1:], n)
         else:  # one index_copy_ (a kernel launch matters more than a small copy)
-            self._ops.scatter(self._ring, ring_slots, torch.cat([p, q[:, -1:]], 1), plan.pushed,
-                              pushes)
+            ops.scatter(self._ring_a, plan.slots, torch.cat([p, q[:, -1:]], 1), plan.pushed,
+                        pushes)
         self._head = head
-        self._last = plan.refs[-self.streams:, 1:].clone()
-        self._valid.fill_(True)
-        self._any_last = True
+        # views of the fresh plan arrays, never written again
+        self._last, self._last_slots = plan.refs[-self.streams:, 1:], plan.slots[-self.streams:, 1:]
         out = data.exclude(key, nkey)
-        out.set(REFS_KEY, plan.refs)
+        out.set(REFS_KEY, ops.tensor(plan.refs))
         return out
+
+    def _set_ring(self, ring: torch.Tensor | None) -> None:
+        self._ring = ring
+        self._ring_a = None if ring is None else self._ops.arr(ring)
 
     def _check_live(self, new_min: int, n: int, slots: torch.Tensor, head: int) -> None:
         """Raise unless every transition live after this write keeps its frames."""
@@ -223,18 +228,17 @@ class FrameStackStorage(LazyTensorStorage):
         refs = td.get(REFS_KEY)
         if refs.numel() and int(refs.min()) < self._head - self.ring_size:
             raise FrameRingOverflow("a stored transition lost its frames (ring overwritten)")
-        assert self._ring is not None
+        assert self._ring_a is not None
         # Two contiguous gathers, not two views of one: the stacks must not share memory.
-        slots = refs % self.ring_size
+        ops, slots = self._ops, self._ops.arr(refs % self.ring_size)
         out = td.exclude(REFS_KEY)
-        out.set(self.pixels_key, self._ops.gather(self._ring, slots[..., : self.stack]))
-        out.set(("next", self.pixels_key), self._ops.gather(self._ring, slots[..., 1:]))
+        out.set(self.pixels_key, ops.tensor(self._ring_a[slots[..., : self.stack]]))
+        out.set(("next", self.pixels_key), ops.tensor(self._ring_a[slots[..., 1:]]))
         return out
 
     def _empty(self) -> None:
         super()._empty()
-        self._head, self._live_lb, self._any_last = 0, math.inf, False
-        self._valid.fill_(False)
+        self._head, self._live_lb, self._last, self._last_slots = 0, math.inf, None, None
 
     @property
     def frames_used(self) -> int:
@@ -249,10 +253,9 @@ class FrameStackStorage(LazyTensorStorage):
 
     # ------------------------------------------------------------------ checkpoints
     def _frame_meta(self) -> dict[str, Any]:
-        per_stream = [row if ok else None
-                      for row, ok in zip(self._last.tolist(), self._valid.tolist(), strict=True)]
+        rows = None if self._last is None else self._ops.tensor(self._last).tolist()
         # one stream keeps the original layout (a list or None), so old checkpoints still load
-        last = per_stream[0] if self.streams == 1 else per_stream
+        last = rows[0] if rows is not None and self.streams == 1 else rows
         return {"head": self._head, "last": last, "live_lb": self._live_lb,
                 "ring_size": self.ring_size, "stack": self.stack, "streams": self.streams}
 
@@ -265,17 +268,20 @@ class FrameStackStorage(LazyTensorStorage):
                              f"{self.stack} x {self.streams}")
         self._head = int(meta["head"])
         self._live_lb = float(meta["live_lb"])
-        per_stream = [meta["last"]] if self.streams == 1 else list(meta["last"])
-        self._valid = torch.tensor([r is not None for r in per_stream], device=self._dev)
-        self._last = torch.tensor([r if r is not None else [0] * self.stack
-                                   for r in per_stream], dtype=torch.long, device=self._dev)
-        self._any_last = bool(self._valid.any())
+        last = meta["last"]
+        if last is None:
+            self._last = self._last_slots = None
+        else:
+            rows = [last] if self.streams == 1 else last
+            self._last = self._ops.arr(torch.tensor(rows, dtype=torch.long, device=self._dev))
+            self._last_slots = self._last % self.ring_size
         if ring is None:
-            self._ring = None
+            self._set_ring(None)
             return
         ring_t = ring if isinstance(ring, torch.Tensor) else torch.from_numpy(np.array(ring))
-        self._ring = torch.empty((self.ring_size, *ring_t.shape[1:]), dtype=ring_t.dtype,
-                                 device=self._dev).zero_()
+        self._set_ring(torch.empty((self.ring_size, *ring_t.shape[1:]), dtype=ring_t.dtype,
+                                   device=self._dev).zero_())
+        assert self._ring is not None
         self._ring[: len(ring_t)] = ring_t.to(self._dev)
 
     def state_dict(self) -> dict[str, Any]:
