@@ -191,7 +191,8 @@ class FrameStackStorage(LazyTensorStorage):
         self._head = head
         # views of the fresh plan arrays, never written again
         self._last, self._last_slots = plan.refs[-self.streams:, 1:], plan.slots[-self.streams:, 1:]
-        out = data.exclude(key, nkey)
+        # on the storage device already (TensorDict writes a device-less batch slower)
+        out = data.exclude(key, nkey).to(self._dev)
         out.set(REFS_KEY, ops.tensor(plan.refs))
         return out
 
