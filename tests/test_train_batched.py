@@ -16,7 +16,7 @@ from memrl.errors import ConfigError
 from memrl.train import train
 from tests.helpers import TINY, make_demos
 
-N4 = ["env.num_envs=4", "buffer.compact=false"]  # TODO(merge)
+N4 = ["env.num_envs=4"]
 
 
 @pytest.fixture(scope="module")
