@@ -59,7 +59,7 @@ def build_stage(name: str, cfg: DictConfig, learner: Learner, demos: TensorDictB
     a, m = cfg.agent, cfg.mode
     capacity, batch = int(cfg.buffer.capacity), int(a.batch_size)
     compact = bool(cfg.buffer.get("compact", True))  # each frame stored once
-    store = {"compact": compact, "streams": num_envs, "device": device}
+    store: dict[str, Any] = {"compact": compact, "streams": num_envs, "device": device}
     learner.margin_weight = 0.0
     if name == "B1":
         assert demos is not None
