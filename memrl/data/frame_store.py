@@ -294,8 +294,9 @@ class FrameStackStorage(LazyTensorStorage):
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         super().load_state_dict(state_dict)
-        if self._storage is not None:  # TorchRL builds a fresh storage on the CPU
-            self._storage = self._storage.to(self._dev)
+        storage: Any = self._storage
+        if storage is not None:  # TorchRL builds a fresh storage on the CPU
+            self._storage = storage.to(self._dev)
         self._set_frame_meta(state_dict["frame_ring"]["meta"], state_dict["frame_ring"]["ring"])
 
     def dumps(self, path: str | Path) -> None:
