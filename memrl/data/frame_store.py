@@ -294,7 +294,7 @@ class FrameStackStorage(LazyTensorStorage):
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         super().load_state_dict(state_dict)
-        storage: Any = self._storage
+        storage: Any = self._storage  # type: ignore[has-type]  # TorchRL leaves it untyped
         if storage is not None:  # TorchRL builds a fresh storage on the CPU
             self._storage = storage.to(self._dev)
         self._set_frame_meta(state_dict["frame_ring"]["meta"], state_dict["frame_ring"]["ring"])
