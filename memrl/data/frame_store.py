@@ -45,9 +45,10 @@ pushes more, e.g. shuffled mid-episode stacks, or a smaller ring) raises
 Device. With ``device`` (any torch device) the ring and the per-transition tensors live there,
 and writes and samples run there (:mod:`memrl.data.frame_plan`); pixels never go to the host.
 Host syncs: a write reads 3 integers at once (frames pushed, lowest ref, shift check), plus 1
-when its cached lower bound of the live refs must be refreshed (at most once per
-``ring_size - 2 max_size`` pushed frames for env data); a sample reads 1 (lowest ref). On CPU
-the pixel work uses numpy (see :class:`memrl.data.frame_plan.Pixels`).
+when the cached lower bound of the live refs falls below the ring's floor and is recomputed
+(for env data whose episodes are much longer than one step, about once per ``max_size``
+pushed frames; up to every write when nearly every row starts an episode); a sample reads 1
+(its lowest ref). On CPU the pixel work uses numpy (see :class:`memrl.data.frame_plan.Pixels`).
 
 TorchRL's own route, ``CatFrames.make_rb_transform_and_sampler`` + ``SliceSampler``, is not
 used: it samples only slices of ``N`` steps lying inside one stored episode, so the first
@@ -293,8 +294,9 @@ class FrameStackStorage(LazyTensorStorage):
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         super().load_state_dict(state_dict)
-        if self._storage is not None:  # TorchRL builds a fresh storage on the CPU
-            self._storage = self._storage.to(self._dev)
+        storage: Any = self._storage  # type: ignore[has-type]  # TorchRL leaves it untyped
+        if storage is not None:  # TorchRL builds a fresh storage on the CPU
+            self._storage = storage.to(self._dev)
         self._set_frame_meta(state_dict["frame_ring"]["meta"], state_dict["frame_ring"]["ring"])
 
     def dumps(self, path: str | Path) -> None:
