@@ -66,7 +66,7 @@ def command_line(cfg: DictConfig) -> str:
         args = [f"study.dir={s.dir}", f"study.modes=[{','.join(s.modes)}]",
                 f"study.seeds=[{','.join(map(str, s.seeds))}]",
                 f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
-                f"'study.train_overrides=[{','.join(s.train_overrides)}]'"]
+                f"'study.train_overrides={json.dumps(list(s.train_overrides))}'"]
         args += [f"protocol.{k}={json.dumps(v).replace(' ', '')}" for k, v in
                  OmegaConf.to_container(cfg.protocol, resolve=True).items()]  # type: ignore[union-attr]
     return " ".join(["python -m memrl.study", *args])

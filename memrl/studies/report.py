@@ -78,6 +78,10 @@ def _summary(cell: Cell) -> dict[str, Any]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
+def _yaml(value: Any) -> str:
+    return "null" if value is None else str(value)
+
+
 def _span(values: Sequence[float], unit: str = "") -> str:
     if not values:
         return "\u2014"
@@ -88,8 +92,8 @@ def _span(values: Sequence[float], unit: str = "") -> str:
 
 def budget(cells: Sequence[Cell], finished: Sequence[Cell]) -> list[str]:
     """The configured budget of the runs and what they measured."""
-    set_ = sorted({f"total_frames={c.cfg.get('total_frames')}, total_episodes={c.cfg.get('total_episodes')}"
-                   for c in cells if c.cfg is not None})
+    set_ = sorted({f"total_frames={_yaml(c.cfg.get('total_frames'))}, "
+                   f"total_episodes={_yaml(c.cfg.get('total_episodes'))}" for c in cells if c.cfg is not None})
     sums = [_summary(c) for c in finished]
     lines = [f"- budget per run: {'; '.join(set_)}",
              f"- measured per run ({len(sums)} runs): env steps {_span([s['frames'] for s in sums])}, "
