@@ -16,7 +16,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -60,15 +60,15 @@ def command_line(cfg: DictConfig) -> str:
     from hydra.core.hydra_config import HydraConfig
 
     if HydraConfig.initialized():
-        args = HydraConfig.get().overrides.task
+        args = [str(a) for a in HydraConfig.get().overrides.task]
     else:
         s = cfg.study
         args = [f"study.dir={s.dir}", f"study.modes=[{','.join(s.modes)}]",
                 f"study.seeds=[{','.join(map(str, s.seeds))}]",
                 f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
                 f"'study.train_overrides={json.dumps(list(s.train_overrides))}'"]
-        args += [f"protocol.{k}={json.dumps(v).replace(' ', '')}" for k, v in
-                 OmegaConf.to_container(cfg.protocol, resolve=True).items()]  # type: ignore[union-attr]
+        protocol: dict[str, Any] = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
+        args += [f"protocol.{k}={json.dumps(v).replace(' ', '')}" for k, v in protocol.items()]
     return " ".join(["python -m memrl.study", *args])
 
 
@@ -84,8 +84,9 @@ def check_record(folder: Path, cfg: DictConfig) -> None:
         raise config_error("study.train_overrides", f"the study {folder} was made with {before}, this "
                            f"call gives {now}; give the same, another study.dir, or study.allow_changes=true "
                            "(finished runs are then kept as they are)")
-    history = doc.get("changes", []) + ([{"from": before, "to": now, "at": time.strftime("%Y-%m-%d %H:%M:%S")}]
-                                        if before != now else [])
+    history = doc.get("changes", [])
+    if before != now:
+        history.append({"from": before, "to": now, "at": time.strftime("%Y-%m-%d %H:%M:%S")})
     record = {"train_overrides": now, "modes": list(s.modes), "seeds": list(s.seeds),
               "opponents": list(s.opponents), "baselines": list(s.baselines),
               "protocol": OmegaConf.to_container(cfg.protocol, resolve=True), "changes": history}
@@ -126,7 +127,7 @@ def study(cfg: DictConfig) -> StudyResult:
     from memrl.schemas import check_train
     from memrl.studies import evaluation as ev
     from memrl.studies.grid import cells, run_cells
-    from memrl.studies.report import ReportInputs, write_report
+    from memrl.studies.report import ReportInputs, stage_figure, write_report
 
     start = time.perf_counter()
     check_study(cfg)
@@ -162,14 +163,19 @@ def study(cfg: DictConfig) -> StudyResult:
         raise RuntimeError(f"study {folder}: no run finished and no baseline to report")
     rcfg = report_config(cfg, folders, labels + [str(b) for b in s.baselines if b == "scripted"], pairs)
     files = report(rcfg, out_dir=folder)
-    result.figures = [f for f in [files.fig5, *files.strips] if f is not None]
+    scfg = stats_config(rcfg)
+    switch = stage_figure(finished, evals.runs, evals.stage1, folder / "fig_stage2.png", scfg,
+                          int(rcfg.curve_resamples))
+    result.figures = [f for f in [files.fig5, switch, *files.strips] if f is not None]
     result.wall_s = time.perf_counter() - start
+    protocol: dict = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
     write_report(ReportInputs(str(s.name), result.command, grid, finished, outcome.failed, evals.runs,
-                              evals.stage1, evals.baselines, OmegaConf.to_container(cfg.protocol, resolve=True),  # type: ignore[arg-type]
-                              stats_config(rcfg), pairs, result.figures, result.wall_s), result.report)
+                              evals.stage1, evals.baselines, protocol, scfg, pairs,
+                              result.figures, result.wall_s), result.report)
     log.info("study %s: %d runs skipped, %d trained, %d resumed, %d failed; %d evaluations made, "
              "%d reused; report in %s", folder, len(result.skipped), len(result.trained),
-             len(result.resumed), len(result.failed), len(result.evaluated), len(result.reused), result.report)
+             len(result.resumed), len(result.failed), len(result.evaluated), len(result.reused),
+             result.report)
     print(f"wrote {result.report}")
     return result
 

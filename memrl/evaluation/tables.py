@@ -149,7 +149,8 @@ def side_by_side(rows: Sequence[Row], confidence: float = 0.95) -> str:
         cells = []
         for c in cols:
             cell = r.cells.get(c)
-            ours = "" if cell is None else f"{fmt_cell(cell, confidence, per_unit=False)}; IQM {fmt_iqm(cell)}"
+            ours = "" if cell is None else \
+                f"{fmt_cell(cell, confidence, per_unit=False)}; IQM {fmt_iqm(cell)}"
             cells += [ours, _paper_text(r, c) or "\u2014"]
         lines.append(f"| {r.label} | {len(r.units)} | " + " | ".join(cells) + " |")
     lines += ["", "Per-seed values:", "", "| method | units | " + " | ".join(column_name(c) for c in cols)

@@ -19,7 +19,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ class Cell:
 def cells(study: DictConfig, runs_dir: Path) -> list[Cell]:
     """The grid, composed (a bad train override stops here, naming the key)."""
     out = []
-    opponents = [str(o) for o in study.opponents] or [None]
+    opponents: list[str | None] = [str(o) for o in study.opponents] or [None]
     user = [str(o) for o in study.train_overrides]
     for mode in study.modes:
         for opponent in opponents:
@@ -133,24 +133,29 @@ def _last_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {str(err).strip().splitlines()[-1] if str(err).strip() else ''}"
 
 
-def run_cells(grid: Sequence[Cell], jobs: int,
-              trainer: Callable[[DictConfig, str, bool], dict[str, Any]] = train_cell) -> Outcome:
-    """Train every unfinished cell: resume killed ones, start the others (a folder without a
-    checkpoint is started afresh). A failing cell is recorded and the others go on."""
-    out = Outcome()
+def plan(grid: Sequence[Cell], out: Outcome) -> list[tuple[Cell, bool]]:
+    """The cells to train and whether each resumes; finished ones go to ``out.skipped``. A
+    folder without a checkpoint (killed before its first one) is removed and started afresh."""
     todo: list[tuple[Cell, bool]] = []
     for cell in grid:
         if cell.finished():
             out.skipped.append(cell.name)
-        elif cell.resumable():
-            todo.append((cell, True))
-        else:
-            if cell.run_dir.exists():  # killed before its first checkpoint: nothing to keep
-                log.info("%s: no checkpoint to resume from; starting it again", cell.name)
-                shutil.rmtree(cell.run_dir)
-            todo.append((cell, False))
-    for cell, resume in todo:
+            continue
+        resume = cell.resumable()
+        if not resume and cell.run_dir.exists():
+            log.info("%s: no checkpoint to resume from; starting it again", cell.name)
+            shutil.rmtree(cell.run_dir)
         log.info("%s %s (%s)", "resuming" if resume else "training", cell.name, " ".join(cell.overrides))
+        todo.append((cell, resume))
+    return todo
+
+
+def run_cells(grid: Sequence[Cell], jobs: int,
+              trainer: Callable[[DictConfig, str, bool], dict[str, Any]] = train_cell) -> Outcome:
+    """Train every unfinished cell (:func:`plan`), ``jobs`` at once; a failing cell is
+    recorded and the others go on."""
+    out = Outcome()
+    todo = plan(grid, out)
 
     def done(cell: Cell, resume: bool, error: BaseException | None) -> None:
         if error is None:
@@ -163,25 +168,18 @@ def run_cells(grid: Sequence[Cell], jobs: int,
 
     if jobs <= 1 or len(todo) <= 1:
         for cell, resume in todo:
-            assert cell.cfg is not None
+            error: BaseException | None = None
             try:
-                trainer(cell.cfg, str(cell.run_dir), resume)
+                trainer(cell.cfg, str(cell.run_dir), resume)  # type: ignore[arg-type]
             except Exception as err:  # one failing run must not stop the study
-                done(cell, resume, err)
-            else:
-                done(cell, resume, None)
+                error = err
+            done(cell, resume, error)
         return out
     # spawn: a fresh interpreter per worker (no forked torch / OpenMP state)
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
         futures: list[tuple[Cell, bool, Future]] = [
-            (cell, resume, pool.submit(trainer, cell.cfg, str(cell.run_dir), resume))
+            (cell, resume, pool.submit(trainer, cell.cfg, str(cell.run_dir), resume))  # type: ignore[arg-type]
             for cell, resume in todo]
         for cell, resume, fut in futures:
-            err = fut.exception()
-            done(cell, resume, err)  # type: ignore[arg-type]
+            done(cell, resume, fut.exception())
     return out
-
-
-def plain(cfg: DictConfig) -> dict[str, Any]:
-    """A composed config as plain values (resolved)."""
-    return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]

@@ -67,7 +67,8 @@ def machine(cells: Sequence[Cell]) -> str:
         if d.startswith("cuda"):
             import torch
 
-            names.append(f"{d} ({torch.cuda.get_device_name(d) if torch.cuda.is_available() else 'not here'})")
+            gpu = torch.cuda.get_device_name(d) if torch.cuda.is_available() else "no GPU here now"
+            names.append(f"{d} ({gpu})")
         else:
             names.append(d)
     return f"{cpu_model()}, {os.cpu_count()} cores; training device: {', '.join(names)}"
@@ -93,12 +94,16 @@ def _span(values: Sequence[float], unit: str = "") -> str:
 def budget(cells: Sequence[Cell], finished: Sequence[Cell]) -> list[str]:
     """The configured budget of the runs and what they measured."""
     set_ = sorted({f"total_frames={_yaml(c.cfg.get('total_frames'))}, "
-                   f"total_episodes={_yaml(c.cfg.get('total_episodes'))}" for c in cells if c.cfg is not None})
+                   f"total_episodes={_yaml(c.cfg.get('total_episodes'))}"
+                   for c in cells if c.cfg is not None})
     sums = [_summary(c) for c in finished]
+
+    def span(key: str, unit: str = "") -> str:
+        return _span([s[key] for s in sums], unit)
+
     lines = [f"- budget per run: {'; '.join(set_)}",
-             f"- measured per run ({len(sums)} runs): env steps {_span([s['frames'] for s in sums])}, "
-             f"episodes {_span([s['episodes'] for s in sums])}, updates {_span([s['updates'] for s in sums])}, "
-             f"training wall {_span([s['wall_s'] for s in sums], ' s')}"]
+             f"- measured per run ({len(sums)} runs): env steps {span('frames')}, episodes "
+             f"{span('episodes')}, updates {span('updates')}, training wall {span('wall_s', ' s')}"]
     s1 = [s["stage1"]["updates"] for s in sums if s.get("mode") == "B" and s.get("stage1")]
     if s1:
         lines.append(f"- mode B stage 1: {_span(s1)} updates on the prior knowledge (no env steps)")
@@ -140,15 +145,15 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
     finals = {str(r.meta.get("run")): r for r in inputs.runs}
     for r in inputs.stage1:
         run = Path(str(r.meta["run"]))
-        rows = _periodic(run)
+        periodic = _periodic(run)
         ng = r.scores.get("non_goal")
         f = finals.get(str(run))
         fng = f.scores.get("non_goal") if f is not None else None
-        s1 = f"{_pct(ng.survival_score)} / {_pct(ng.goal_score)}" if ng else "\u2014"
+        first_s = f"{_pct(ng.survival_score)} / {_pct(ng.goal_score)}" if ng else "\u2014"
         fin = f"{_pct(fng.survival_score)} / {_pct(fng.goal_score)}" if fng else "\u2014"
-        if rows:
-            first, last = rows[0], rows[-1]
-            low = min(rows, key=lambda x: (x["goal_non_goal"], x["env_steps"]))
+        if periodic:
+            first, last = periodic[0], periodic[-1]
+            low = min(periodic, key=lambda x: (x["goal_non_goal"], x["env_steps"]))
             cells = [f"{_pct(first['survival_non_goal'])} / {_pct(first['goal_non_goal'])} "
                      f"(step {first['env_steps']:.0f})",
                      f"{_pct(low['goal_non_goal'])} (step {low['env_steps']:.0f})",
@@ -156,7 +161,7 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
                      f"(step {last['env_steps']:.0f})"]
         else:
             cells = ["no periodic evaluation (train with eval.every > 0)", "", ""]
-        lines.append(f"| {run.name} | {s1} | " + " | ".join(cells) + f" | {fin} |")
+        lines.append(f"| {run.name} | {first_s} | " + " | ".join(cells) + f" | {fin} |")
     return lines + [""]
 
 
@@ -182,9 +187,31 @@ def comparisons(inputs: ReportInputs, results: Sequence[EvalResult]) -> list[str
              "| comparison | column | difference | P(a > b) |", "|---|---|---|---|"]
     for d in diffs:
         col = "all columns" if d.column == stats.ALL else tables.column_name(d.column)
+        over = "\u2020" if d.cell.over == "episodes" else ""
         lines.append(f"| {d.a} \u2212 {d.b} | {col} | {d.cell.mean:+.1f} [{d.cell.low:.1f}, "
-                     f"{d.cell.high:.1f}]{chr(0x2020) if d.cell.over == 'episodes' else ''} | {tables.fmt_p(d)} |")
+                     f"{d.cell.high:.1f}]{over} | {tables.fmt_p(d)} |")
     return lines + ["", tables.verdict(diffs, pct), ""]
+
+
+def stage_figure(finished: Sequence[Cell], runs: Sequence[EvalResult], stage1: Sequence[EvalResult],
+                 path: Path, cfg: stats.StatsConfig, n_resamples: int = 2000) -> Path | None:
+    """Mode B's periodic evaluation through stage 2 between the protocol scores (non-goal
+    survival, goal) of its stage-1 and final weights (:func:`memrl.evaluation.figures.stage_switch`)."""
+    from memrl.evaluation.figures import find_training_runs, stage_switch
+
+    def scores(results: Sequence[EvalResult], suffix: str = "") -> dict[str, list[tuple[float, float]]]:
+        out: dict[str, list[tuple[float, float]]] = {}
+        for r in results:
+            if "non_goal" in r.scores and r.meta.get("mode") == "B":
+                s = r.scores["non_goal"]
+                out.setdefault(r.name.removesuffix(suffix), []).append((s.survival_score, s.goal_score))
+        return out
+
+    b_runs = [c.run_dir for c in finished if c.mode == "B"]
+    if not b_runs:
+        return None
+    return stage_switch(find_training_runs(b_runs), scores(stage1, STAGE1_SUFFIX), scores(runs), path,
+                        confidence=cfg.confidence, n_resamples=n_resamples)
 
 
 def write_report(inputs: ReportInputs, path: Path) -> Path:
