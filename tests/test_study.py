@@ -32,10 +32,11 @@ def quoted(items: list[str]) -> str:
     return "[" + ",".join(f"'{i}'" for i in items) + "]"
 
 
-def study_overrides(folder: Path, train: list[str] = TRAIN, modes: str = "[Default,B]") -> list[str]:
+def study_overrides(folder: Path, train: list[str] = TRAIN, modes: str = "[Default,B]",
+                    report: tuple[str, ...] = ()) -> list[str]:
     return [f"study.dir={folder}", f"study.modes={modes}", "study.seeds=[0,1]",
             f"study.train_overrides={quoted(train)}", "study.workers=1", "study.progress=false",
-            f"study.report_overrides={quoted(['n_resamples=200', 'curve_resamples=50'])}",
+            f"study.report_overrides={quoted(['n_resamples=200', 'curve_resamples=50', *report])}",
             "protocol.episodes=2", "protocol.duration=30"]
 
 
@@ -155,7 +156,8 @@ def test_train_overrides_reach_every_run_and_the_grid_keys_are_its_own(tmp_path,
 
 def test_the_command_line_runs_a_study_with_two_jobs(tmp_path):
     folder = tmp_path / "cli"
-    args = [*study_overrides(folder, modes="[Default]"), "study.jobs=2", "study.baselines=[random]"]
+    args = [*study_overrides(folder, modes="[Default]", report=("rollouts.rows=[]",)), "study.jobs=2",
+            "study.baselines=[random]"]
     env = {**os.environ, "MEMRL_ROOT": str(tmp_path), "SDL_VIDEODRIVER": "dummy"}
     proc = subprocess.run([sys.executable, "-m", "memrl.study", *args], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=300)
