@@ -154,16 +154,30 @@ def test_train_overrides_reach_every_run_and_the_grid_keys_are_its_own(tmp_path,
     assert [c.cfg.mode.name for c in grid] == ["A", "A", "B", "B"] and grid[1].cfg.seed == 1
 
 
-def test_the_command_line_runs_a_study_with_two_jobs(tmp_path):
+def test_jobs_train_in_spawned_processes_and_a_failing_run_lets_the_others_finish(tmp_path):
+    from omegaconf import OmegaConf
+
+    from memrl.studies.grid import Cell, run_cells
+    from tests.study_helpers import fake_trainer
+
+    grid = [Cell("Default", "constant", s, tmp_path / f"Default_constant_s{s}", [], OmegaConf.create({}))
+            for s in (0, 1, 2)]
+    out = run_cells(grid, jobs=2, trainer=fake_trainer)
+    assert out.trained == ["Default_constant_s0", "Default_constant_s2"]
+    assert out.failed == {"Default_constant_s1": "RuntimeError: Default_constant_s1 diverged"}
+    again = run_cells(grid, jobs=2, trainer=fake_trainer)
+    assert again.skipped == out.trained and list(again.failed) == ["Default_constant_s1"]
+
+
+def test_the_command_line_runs_a_study(tmp_path):
     folder = tmp_path / "cli"
-    args = [*study_overrides(folder, modes="[Default]", report=("rollouts.rows=[]",)), "study.jobs=2",
-            "study.baselines=[random]"]
+    args = [*study_overrides(folder, modes="[Default]", report=("rollouts.rows=[]",)),
+            "study.seeds=[0]", "study.baselines=[random]"]
     env = {**os.environ, "MEMRL_ROOT": str(tmp_path), "SDL_VIDEODRIVER": "dummy"}
     proc = subprocess.run([sys.executable, "-m", "memrl.study", *args], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    for seed in (0, 1):
-        assert (folder / "runs" / f"Default_constant_s{seed}" / "summary.json").is_file()
+    assert (folder / "runs" / "Default_constant_s0" / "summary.json").is_file()
     md = (folder / "report.md").read_text()
-    assert "| Default | 2 |" in md and "| random | 1 |" in md
+    assert "| Default | 1 |" in md and "| random | 1 |" in md
     assert (folder / "study.log").is_file() and "python -m memrl.study study.dir=" in md
