@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 import sys
 import time
 from dataclasses import dataclass, field
@@ -56,7 +57,8 @@ class StudyResult:
 
 
 def command_line(cfg: DictConfig) -> str:
-    """The command that made this call: Hydra's overrides, or the study keys of a typed call."""
+    """The command that made this call, quoted for a POSIX shell: Hydra's overrides, or the
+    study keys of a typed call."""
     from hydra.core.hydra_config import HydraConfig
 
     if HydraConfig.initialized():
@@ -66,10 +68,10 @@ def command_line(cfg: DictConfig) -> str:
         args = [f"study.dir={s.dir}", f"study.modes=[{','.join(s.modes)}]",
                 f"study.seeds=[{','.join(map(str, s.seeds))}]",
                 f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
-                f"'study.train_overrides={json.dumps(list(s.train_overrides))}'"]
+                f"study.train_overrides={json.dumps(list(s.train_overrides))}"]
         protocol: dict[str, Any] = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
         args += [f"protocol.{k}={json.dumps(v).replace(' ', '')}" for k, v in protocol.items()]
-    return " ".join(["python -m memrl.study", *args])
+    return " ".join(["python -m memrl.study", *(shlex.quote(a) for a in args)])
 
 
 def check_record(folder: Path, cfg: DictConfig) -> None:
