@@ -81,6 +81,8 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
                  "B_constant_s1", "machine:", "budget per run: total_frames=64", result.command):
         assert text in md, text
     assert (folder / "fig5.png").is_file() and (folder / "study.json").is_file()
+    assert (folder / "fig_stage2.png").is_file() and (folder / "fig7_B.png").is_file()
+    assert "![fig_stage2](fig_stage2.png)" in md
 
 
 def test_stage1_weights_are_evaluated_from_the_loss_module(first):
