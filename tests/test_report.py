@@ -255,3 +255,11 @@ def test_fig7_strip_names_the_method_and_says_when_nothing_succeeded():
     assert red[28:52].any() and not red[:28].any()  # the note, in red, under the title
     legend = plain[-24:]
     assert (np.abs(legend.astype(int) - [255, 220, 0]).sum(-1) == 0).any()  # the agent's swatch
+
+
+def test_rows_of_other_traffic_follow_their_mode():
+    from memrl.evaluation.rows import row_rank
+
+    names = ["random", "B (learned)", "zeta", "B", "Default (mixed)", "Default", "A"]
+    assert sorted(names, key=row_rank) == ["Default", "Default (mixed)", "A", "B", "B (learned)",
+                                           "random", "zeta"]

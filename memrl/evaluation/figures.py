@@ -23,7 +23,7 @@ from matplotlib.figure import Figure
 
 from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.policies import run_config, run_label
-from memrl.evaluation.stats import ROW_ORDER
+from memrl.evaluation.rows import row_rank
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ def _panel(ax, runs: list[Curves], key: str, x_key: str, window: int, confidence
     by: dict[str, list[Curves]] = {}
     for r in runs:
         by.setdefault(r.label, []).append(r)
-    order = sorted(by, key=lambda k: (ROW_ORDER.index(k) if k in ROW_ORDER else 99, k))
+    order = sorted(by, key=row_rank)
     for i, label in enumerate(order):
         found = [r.columns if source == "episodes" else r.periodic for r in by[label]]
         cols = [c for c in found if c and key in c and len(c[key])]
