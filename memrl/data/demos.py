@@ -66,6 +66,7 @@ EPISODE_KEYS = (
     "target_lane", "initial_lane", "initial_speed", "initial_offset", "initial_heading",
     "initial_curvature", "vehicles_count", "other_speed",
     "spawn_ahead", "spawn_behind", "spawn_gap", "spawn_attempts", "opponent", "scene",
+    "num_envs",  # how many envs a trainer steps at once: the same task, the same transitions
 )
 """Env-config keys left out of :func:`env_config_hash`: they choose which episodes are drawn
 (start and target lanes, the agent's starting pose, how many other cars, where, how fast and
@@ -458,32 +459,3 @@ def example_demos_path(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | Non
     """Where the cached scripted-driver example for this env config lives."""
     folder = Path(data_dir) if data_dir is not None else default_data_dir()
     return folder / f"example_scripted_{env_config_hash(env_cfg)[:12]}"
-
-
-def ensure_example_demos(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None, *,
-                         episodes: int = 10, seed: int = 0, overwrite: bool = False) -> Path:
-    """Path of the cached example dataset made by the scripted driver; records it if needed.
-
-    The dataset is recorded with ``env_cfg`` (keeping stable episodes only) and cached under
-    ``data_dir`` by env-config hash. A cached dataset that fails :func:`load_demos` is
-    recorded again.
-    """
-    from memrl.data.recording import record_to_dataset  # recording needs the env stack
-    from memrl.modules.scripted import ScriptedDriver
-
-    path = example_demos_path(env_cfg, data_dir)
-    if path.exists() and not overwrite:
-        try:
-            load_demos(path, env_cfg)
-            return path
-        except DemoDatasetError as e:
-            log.warning("cached example dataset is unusable, recording it again: %s", e)
-    log.info("recording the example dataset (%d scripted episodes) into %s", episodes, path)
-    saved, rec = record_to_dataset(
-        env_cfg, ScriptedDriver(), path, episodes=episodes, seed=seed, keep_stable=True,
-        source="scripted", overwrite=True,
-        extra={"policy": {"_target_": "memrl.modules.scripted.ScriptedDriver"}, "example": True})
-    if saved is None:
-        raise RuntimeError(f"the scripted driver kept no stable episode out of {episodes}; "
-                           f"recorded: {rec.stats()['recorded']}")
-    return path

@@ -15,7 +15,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from memrl.dqn.records import CsvTable
+from memrl.csv_table import CsvTable
 from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import INITIAL_LANES, ProtocolConfig, protocol_env, scenario_seeds, score

@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from memrl.data.recording import StopRecording
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
+from memrl.modules.policy import StopRecording
 
 log = logging.getLogger(__name__)
 

@@ -18,6 +18,11 @@ from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
 
 
+class StopRecording(Exception):  # noqa: N818 - a request, not an error
+    """Raised by a policy (e.g. the human pressing Esc) to end a recording early; the episode
+    under way is dropped and the finished ones are kept."""
+
+
 class DrivingPolicy(ABC):
     """Decides the agent's action; may read the world state (privileged) or only pixels."""
 
