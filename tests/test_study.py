@@ -148,11 +148,12 @@ def test_changing_the_train_overrides_of_a_study_is_refused(tmp_path, compose_cf
 def test_train_overrides_reach_every_run_and_the_grid_keys_are_its_own(tmp_path, compose_cfg):
     from memrl.studies.grid import cells
 
-    cfg = compose_cfg("study", [*study_overrides(tmp_path, [*TRAIN, "agent.lr=0.0005"], "[A,B]"),
-                                "study.opponents=[constant]"])
+    train = [*TRAIN, "agent.lr=0.0005", "env.num_envs=2", "device=cpu"]
+    cfg = compose_cfg("study", [*study_overrides(tmp_path, train, "[A,B]"), "study.opponents=[constant]"])
     grid = cells(cfg.study, tmp_path / "runs")
     assert [c.name for c in grid] == ["A_constant_s0", "A_constant_s1", "B_constant_s0", "B_constant_s1"]
     assert all(c.cfg.agent.lr == 0.0005 and c.cfg.total_frames == 64 for c in grid)
+    assert all(c.cfg.env.num_envs == 2 and c.cfg.device == "cpu" for c in grid)
     assert [c.cfg.mode.name for c in grid] == ["A", "A", "B", "B"] and grid[1].cfg.seed == 1
 
 
