@@ -123,6 +123,9 @@ def train_cell(cfg: DictConfig, run_dir: str, resume: bool) -> dict[str, Any]:
     root.setLevel(min(level, logging.INFO) if level else logging.INFO)
     try:
         return dataclasses.asdict(train(cfg, path))
+    except BaseException:
+        log.exception("training %s failed", path)  # the traceback into the run's train.log
+        raise
     finally:
         root.removeHandler(handler)
         root.setLevel(level)

@@ -62,12 +62,14 @@ def cpu_model() -> str:
 def machine(cells: Sequence[Cell]) -> str:
     """CPU model, cores and the training device(s)."""
     devices = sorted({str(c.cfg.get("device", "cpu")) if c.cfg is not None else "cpu" for c in cells})
+    import torch
+
     names = []
     for d in devices:
-        if d.startswith("cuda"):
-            import torch
-
-            gpu = torch.cuda.get_device_name(d) if torch.cuda.is_available() else "no GPU here now"
+        if d == "auto":  # the trainer's choice: a GPU where there is one
+            d = "auto: " + ("cuda" if torch.cuda.is_available() else "cpu")
+        if "cuda" in d:
+            gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU here now"
             names.append(f"{d} ({gpu})")
         else:
             names.append(d)
@@ -237,7 +239,8 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
              f"{WALL_PREFIX} {inputs.wall_s:,.0f} s for this call",
              f"{DATE_PREFIX} {time.strftime('%Y-%m-%d %H:%M:%S %Z')}", ""]
     if inputs.failed:
-        lines += ["**Failed runs** (not in the table; the same command resumes them):", ""]
+        lines += ["**Failed runs** (not in the table; tracebacks in `runs/<run>/train.log`; the same "
+                  "command tries them again):", ""]
         lines += [f"- {name}: {err}" for name, err in inputs.failed.items()] + [""]
     missing = [c.name for c in inputs.cells if c not in inputs.finished and c.name not in inputs.failed]
     if missing:
