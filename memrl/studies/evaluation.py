@@ -73,7 +73,7 @@ def _evaluate(cand: Any, settings: EvalSettings, out: Evaluations, weights: Path
     result = evaluate_candidate(cand, settings.protocol, env_cfg=env, workers=settings.workers,
                                 batch=settings.batch, progress=settings.progress)
     out.made.append(str(cand.out_dir))
-    return result
+    return read_result(result.path)  # as a later call reads it (eval.json rounds the wall time)
 
 
 def evaluate_run(run: Path, settings: EvalSettings, out: Evaluations) -> None:
