@@ -71,7 +71,7 @@ def command(args: list[str]) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
-@pytest.mark.parametrize("name", ["train", "evaluate"])
+@pytest.mark.parametrize("name", ["train", "evaluate", "study"])
 def test_help_lists_groups_and_config_without_importing_torch(name):
     proc = command([f"memrl.{name}", "--help"])
     assert proc.returncode == 0, proc.stderr[-2000:]
