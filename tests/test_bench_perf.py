@@ -53,6 +53,12 @@ def test_bench_memory_measures_both_storages_in_fresh_processes(compose_cfg, tmp
     assert compact["added_bytes"] >= 0.7 * compact["storage_bytes"]
     assert naive["added_bytes"] > 2 * compact["added_bytes"]
     assert res["ratio_compact_to_naive"] < 0.5 and res["compact_within_limit"]
+    # 16 envs written one env step (16 rows) at a time, both storages timed in the same run
+    streams = res["streams"]
+    assert streams["compact"]["ring_frames"] == 2 * 3000 - 1 + 31 * 4
+    assert streams["compact"]["env_steps"] == streams["naive"]["env_steps"] == 3000 // 16
+    assert streams["ratio_compact_to_naive_bytes"] < 0.5
+    assert streams["compact"]["step_us"] > 0 and streams["naive"]["step_us"] > 0
 
 
 def test_bench_e2e_reports_the_busy_share_after_warmup(compose_cfg, tmp_path):

@@ -16,7 +16,7 @@ from memrl.errors import ConfigError
 from memrl.train import train
 from tests.helpers import TINY, make_demos
 
-N4 = ["env.num_envs=4", "buffer.compact=false"]  # TODO(merge)
+N4 = ["env.num_envs=4"]
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +149,21 @@ def test_a_device_that_is_not_one_names_the_key(compose_cfg, tmp_path, bad):
     cfg = compose_cfg("train", TINY + [f"device={bad}"])
     with pytest.raises(ConfigError, match=r"config 'device': expected auto, cpu, cuda or cuda:K"):
         train(cfg, tmp_path / "run")
+
+
+def test_learned_cars_and_self_play_on_four_envs_resume_exactly(compose_cfg, tmp_path):
+    from tests.helpers import save_pool
+
+    pool = save_pool(tmp_path / "pool_src", seeds=(1,))
+    extra = TINY + N4 + ["opponent=mixed", f"env.opponent.pool=[{pool[0]}]", "self_play_every=3",
+                         "checkpoint_every=3", "agent.overlap=false"]
+    full = train(compose_cfg("train", extra + ["total_episodes=10"]), tmp_path / "full")
+    snaps = sorted(p.name for p in (tmp_path / "full" / "pool").iterdir())
+    assert snaps == [f"episode_{k:07d}.pt" for k in range(3, full.episodes + 1, 3)]
+    train(compose_cfg("train", extra + ["total_episodes=5"]), tmp_path / "cut")
+    resumed = train(compose_cfg("train", extra + ["total_episodes=10", f"resume={tmp_path / 'cut'}"]))
+    assert (resumed.frames, resumed.episodes, resumed.updates) == (full.frames, full.episodes, full.updates)
+    assert rows(tmp_path / "cut" / "episodes.csv") == rows(tmp_path / "full" / "episodes.csv")
+    trainer = Trainer(compose_cfg("train", extra + ["total_episodes=10"]), tmp_path / "cut")
+    trainer.resume(tmp_path / "cut")  # the snapshots up to the checkpoint rejoin the pool
+    assert len(trainer.collector.learned_controller().networks) == 1 + trainer.counters.episodes // 3

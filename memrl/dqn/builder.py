@@ -59,9 +59,7 @@ def build_stage(name: str, cfg: DictConfig, learner: Learner, demos: TensorDictB
     a, m = cfg.agent, cfg.mode
     capacity, batch = int(cfg.buffer.capacity), int(a.batch_size)
     compact = bool(cfg.buffer.get("compact", True))  # each frame stored once
-    store: dict[str, Any] = {"compact": compact}
-    if num_envs > 1 or device.type != "cpu":  # TODO(merge): always pass once buffers take them
-        store.update(streams=num_envs, device=device)
+    store: dict[str, Any] = {"compact": compact, "streams": num_envs, "device": device}
     learner.margin_weight = 0.0
     if name == "B1":
         assert demos is not None
@@ -69,8 +67,7 @@ def build_stage(name: str, cfg: DictConfig, learner: Learner, demos: TensorDictB
         if m.stage1.lr is not None:  # a resumed run gets the same from the optimizer state
             learner.set_lr(float(m.stage1.lr))
         train, held_out = split_demos(demos, float(m.stage1.holdout_fraction), int(cfg.seed))
-        extra = {"device": device} if device.type != "cpu" else {}
-        return Stage(name, demo_buffer(train, batch, compact=compact, **extra), None,
+        return Stage(name, demo_buffer(train, batch, compact=compact, device=device), None,
                      held_out.to(device))
     schedule = (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames) if name == "B2" \
         else (a.eps_start, a.eps_end, a.eps_decay_frames)

@@ -342,6 +342,7 @@ class Trainer:
             except (OSError, ValueError, RuntimeError, KeyError) as err:  # no manifest to check
                 raise ckpt.CheckpointError(f"{where / 'buffer'}: unreadable replay buffer "
                                            f"({type(err).__name__}: {err})") from err
+        self.self_play.restore(self.counters.episodes)  # before the engine: its pool size
         collector = state.get("collector") or {"started": self.counters.episodes,  # older format
                                                "pending": torch.ones(self.num_envs, dtype=torch.bool)}
         self.collector.load_state_dict(collector)
@@ -350,7 +351,6 @@ class Trainer:
         ckpt.set_rng_state(state["rng"])
         self.records.rewind(self.counters.episodes, self.counters.update_rows)
         self.periodic.rewind(self.counters.episodes)
-        self.self_play.restore(self.counters.episodes)
         self.rounds.load_state_dict(state.get("rounds"))
         self._checkpointed_at = self.counters.episodes
         self.resumed_from = self.counters.episodes
