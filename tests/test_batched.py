@@ -59,6 +59,13 @@ def test_random_actions_match_the_reference_step_for_step_with_collisions_walls_
     assert tally.resets > 32  # every env went through several auto-resets
 
 
+def test_auto_reset_steps_match_the_reference(backend):
+    """``step(auto_reset=True)`` resets finished envs inside the step (one render call for the
+    last and the first frames): the same episodes, last frames and first frames as a reset."""
+    tally = compare(NON_GOAL, list(range(300, 316)), 200, random_actions(1.0), auto_reset=True)
+    assert tally.resets > 16 and tally.collisions > 0
+
+
 def test_steady_driving_matches_the_reference_through_truncations():
     """16 seeds x 310 steps of 'keep speed and curvature' among 5 cars: rear-end crashes, and
     episodes that last the full 300 steps and are truncated, then reset."""
@@ -100,6 +107,7 @@ def test_learned_cars_act_as_the_reference_controller_does(pool, kind):
     config = {"opponent": {"type": kind, "pool": pool, "epsilon": 0.1}, "vehicles_count": 4}
     tally = compare(config, list(range(4)), 100, random_actions(0.3))
     assert tally.steps == 4 * 100
+    compare(config, list(range(4, 8)), 60, random_actions(1.0), auto_reset=True)
 
 
 def test_learned_cars_of_all_envs_share_one_forward_pass_per_step(pool):

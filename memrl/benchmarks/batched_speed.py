@@ -20,8 +20,11 @@ import torch
 from memrl.benchmarks.env_speed import _time_gym, highway_fast_config
 
 
-def _time_batched(config: dict[str, Any], n: int, seconds: float, device: torch.device, seed: int) -> float:
-    """Env steps/s of the batched engine with N envs, random actions, finished envs reset."""
+def _time_batched(config: dict[str, Any], n: int, seconds: float, device: torch.device, seed: int,
+                  auto_reset: bool = True) -> float:
+    """Env steps/s of the batched engine with N envs, random actions, finished envs reset:
+    inside the step (``auto_reset``, the last and first frames drawn in one call) or by a
+    :meth:`reset` call after it."""
     from memrl.envs.batched import BatchedLaneChange
 
     engine = BatchedLaneChange(config, n, device)
@@ -29,10 +32,11 @@ def _time_batched(config: dict[str, Any], n: int, seconds: float, device: torch.
     gen = torch.Generator(device=device).manual_seed(seed)
 
     def step() -> None:
-        out = engine.step(torch.randint(0, 9, (n,), generator=gen, device=device))
-        done = torch.nonzero(out.terminated | out.truncated).flatten()
-        if len(done):
-            engine.reset(done)
+        out = engine.step(torch.randint(0, 9, (n,), generator=gen, device=device), auto_reset=auto_reset)
+        if not auto_reset:
+            done = torch.nonzero(out.terminated | out.truncated).flatten()
+            if len(done):
+                engine.reset(done)
 
     for _ in range(3):  # warm-up: allocations, caches
         step()

@@ -32,7 +32,7 @@ from memrl.errors import UserError
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
-NUMPY_MAX_VIEWS = 256
+NUMPY_MAX_VIEWS = 2048
 """On CPU, calls with at most this many views are drawn by the rasterizer's numpy path."""
 INFO_KEYS = ("collided", "on_target_lane", "reached_target")
 """Per-step flags of the agent (the reference env's ``info`` keys of the same names)."""
@@ -88,6 +88,10 @@ class StepOut:
     collided: torch.Tensor
     on_target_lane: torch.Tensor
     reached_target: torch.Tensor
+    reset_ids: torch.Tensor | None = None
+    """``step(auto_reset=True)``: the envs this step finished and reset (else None)."""
+    final_observation: torch.Tensor | None = None
+    """``step(auto_reset=True)``: their last observations ``[K, S, H, W]``, before the reset."""
 
 
 class BatchedLaneChange:
@@ -144,9 +148,13 @@ class BatchedLaneChange:
             View(b.width, b.height, b.lateral_scale, b.longitudinal_scale), cfg.lanes_count,
             cfg.lane_width, (cfg.vehicle_length, cfg.vehicle_width), show_target_lane=b.show_target_lane,
             dash_length=b.dash_length, path_length=b.path_length, channels=1, device=dev)
-        # frame ring [S, N, H, W] in one flat buffer with a spare last byte (the renderer's)
-        self._ring = torch.zeros(frame_stack * n * b.height * b.width + 1, dtype=torch.uint8, device=dev)
-        self._frames = self._ring[:-1].view(frame_stack, n, b.height, b.width)
+        # frame ring [S, N, H, W] in one flat buffer: each slot followed by N scratch pictures
+        # (first frames of envs reset in the same render call, see step), then a spare last
+        # byte (the renderer's)
+        self._slot_size = 2 * n * b.height * b.width
+        self._ring = torch.zeros(frame_stack * self._slot_size + 1, dtype=torch.uint8, device=dev)
+        slots = self._ring[:-1].view(frame_stack, 2 * n, b.height, b.width)
+        self._frames, self._scratch = slots[:, :n], slots[:, n:]
         self._ring_np = self._ring.numpy() if dev.type == "cpu" else None  # the same memory
         self._head = 0  # slot of the newest frame in the ring
         self._car_frames: torch.Tensor | None = None
@@ -170,6 +178,14 @@ class BatchedLaneChange:
             return
         if seeds is not None and len(seeds) != len(ids):
             raise BatchedEnvError(f"{len(seeds)} seeds for {len(ids)} envs")
+        idx, scenes = self._draw_scenes(ids, seeds)
+        self._install(idx, scenes)
+        self._frames[:, idx] = self._draw(self._agent_views(*scenes[:4]))[None]
+
+    def _draw_scenes(self, ids: list[int], seeds: Sequence[int | None] | None
+                     ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """New scenes of envs ``ids`` from their generators: the env index tensor and (state,
+        present, target lane, learned, car target, policy) on the engine's device."""
         c = self.present.shape[1]
         state = np.zeros((len(ids), c, 5))
         present = np.zeros((len(ids), c), dtype=bool)
@@ -192,28 +208,36 @@ class BatchedLaneChange:
             learned[row, 1:1 + k] = scene.learned
             car_target[row, 0], car_target[row, 1:1 + k] = scene.target_lane, scene.car_target
             policy[row, 1:1 + k] = scene.policy
-        idx = torch.tensor(ids, device=self.device)
         dev = self.device
-        self.state[idx] = torch.as_tensor(state, dtype=torch.float64, device=dev)
-        self.present[idx] = torch.as_tensor(present, device=dev)
-        self.is_learned[idx] = torch.as_tensor(learned, device=dev)
-        self.car_target[idx] = torch.as_tensor(car_target, device=dev)
-        self.policy[idx] = torch.as_tensor(policy, device=dev)
-        self.target_lane[idx] = torch.as_tensor(target, device=dev)
+        return torch.tensor(ids, device=dev), tuple(
+            torch.as_tensor(a, device=dev) for a in (state, present, target, learned, car_target, policy))
+
+    def _install(self, idx: torch.Tensor, scenes: tuple[torch.Tensor, ...]) -> None:
+        """Envs ``idx`` start the episodes ``scenes`` (of :meth:`_draw_scenes`); frames aside."""
+        state, present, target, learned, car_target, policy = scenes
+        self.state[idx], self.present[idx], self.target_lane[idx] = state, present, target
+        self.is_learned[idx], self.car_target[idx], self.policy[idx] = learned, car_target, policy
         self.steps[idx] = 0
         self.crashed[idx] = False
-        lo, hi = self._lateral_extent(self.state[idx, 0])
-        self.reached[idx] = self._inside_target(lo, hi, self.target_lane[idx])
-        self._frames[:, idx] = self._render_agents(idx)[None]
+        lo, hi = self._lateral_extent(state[:, 0])
+        self.reached[idx] = self._inside_target(lo, hi, target)
         self._car_fresh[idx] = True
 
     # ----------------------------------------------------------------------------- step
-    def step(self, actions: Any, active: torch.Tensor | None = None) -> StepOut:
-        """One action step of every env (call :meth:`reset` on finished ones before the next).
+    def step(self, actions: Any, active: torch.Tensor | None = None, auto_reset: bool = False) -> StepOut:
+        """One action step of every env (call :meth:`reset` on finished ones before the next,
+        or pass ``auto_reset``).
 
-        ``active`` (bool ``[N]``, default all): envs whose outcome counts; the others are about
-        to be reset, and their learned cars draw no exploration from the env's generator (as a
-        reference env that is reset instead of stepped).
+        Args:
+            actions: ``[N]`` action indices.
+            active: bool ``[N]`` (default all): envs whose outcome counts; the others are about
+                to be reset, and their learned cars draw no exploration from the env's
+                generator (as a reference env that is reset instead of stepped).
+            auto_reset: reset the envs that this step finishes, as :meth:`reset` would right
+                after the step (same scenes), drawing their first frames in the same call as
+                every env's new frame; the finished episodes' last observations are in
+                ``StepOut.final_observation`` (rows ``StepOut.reset_ids``), and
+                :meth:`observation` gives the new episodes' first.
         """
         a = check_actions(actions, self.num_envs, self.device)
         # Learned cars look before anyone moves; a view shows positions and headings (and the
@@ -232,13 +256,27 @@ class BatchedLaneChange:
         self.crashed |= (lo < -0.5 * w) | (hi > (self.cfg.lanes_count - 0.5) * w)
         self.reached |= self._inside_target(lo, hi, self.target_lane)
         self._head = (self._head + 1) % self.frame_stack
-        self._render_agents(None, into=self._head)
         comps, on_target = self._components()
         reward = torch.zeros(self.num_envs, dtype=torch.float64, device=self.device)
         for i, weight in enumerate(self._weights):  # the reference's order of summation
             reward = reward + weight * comps[:, i].to(torch.float64)
-        return StepOut(reward, comps, self.crashed.clone(), self.steps >= self.cfg.duration,
-                       self.crashed.clone(), on_target, self.reached.clone())
+        out = StepOut(reward, comps, self.crashed.clone(), self.steps >= self.cfg.duration,
+                      self.crashed.clone(), on_target, self.reached.clone())
+        views = self._agent_views(self.state, self.present, self.target_lane, self.is_learned)
+        done = torch.nonzero(out.terminated | out.truncated).flatten().tolist() if auto_reset else []
+        if not done:
+            self._render_into(self._head, views)
+            return out
+        # the finished envs' last frames and their new scenes' first frames in one call: the
+        # new ones land in the scratch pictures that follow the ring's newest slot
+        idx, scenes = self._draw_scenes(done, None)
+        first = self._agent_views(*scenes[:4])
+        self._render_into(self._head, tuple(torch.cat([v, f]) for v, f in zip(views, first, strict=True)))
+        out.reset_ids = idx
+        out.final_observation = self.observation(idx)
+        self._install(idx, scenes)
+        self._frames[:, idx] = self._scratch[self._head, : len(done)][None]
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         """Everything that determines the engine's future (copies; tensors on its device): car
@@ -261,10 +299,12 @@ class BatchedLaneChange:
                 "target_lane": self.target_lane, "rewards": comps, "collided": self.crashed.clone(),
                 "on_target_lane": on_target, "reached_target": self.reached.clone()}
 
-    def observation(self) -> torch.Tensor:
-        """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor)."""
+    def observation(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor), of
+        every env or of ``env_ids``."""
         order = [(self._head + k) % self.frame_stack for k in range(1, self.frame_stack + 1)]
-        return torch.stack([self._frames[k] for k in order], dim=1)
+        frames = self._frames if env_ids is None else self._frames[:, env_ids]
+        return torch.stack([frames[k] for k in order], dim=1)
 
     def newest_frame(self) -> torch.Tensor:
         """The last frame of every env ``[N, H, W]`` (a view of the ring)."""
@@ -356,23 +396,18 @@ class BatchedLaneChange:
         return comps, on_target
 
     # --------------------------------------------------------------------------- frames
-    def _render_agents(self, idx: torch.Tensor | None, into: int | None = None) -> torch.Tensor:
-        """The agent's view of envs ``idx`` (None: all) ``[V, H, W]``; ``into``: draw all envs'
-        views straight into that slot of the frame ring."""
-        state = self.state if idx is None else self.state[idx]
-        present = self.present if idx is None else self.present[idx]
-        target = self.target_lane if idx is None else self.target_lane[idx]
-        learned = self.is_learned if idx is None else self.is_learned[idx]
+    def _agent_views(self, state: torch.Tensor, present: torch.Tensor, target: torch.Tensor,
+                     learned: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The agents' views (center, target, cars, labels, path) of envs in these states."""
         labels = torch.where(learned, LABEL["learned"], LABEL["constant"])
         labels[:, 0] = LABEL["agent"]
         labels = torch.where(present, labels, -1)
-        path = state[:, 0, [X, Y, HEADING, CURVATURE]]
-        views = (state[:, 0, :2], target, state[..., :3], labels, path)
-        if into is not None:
-            flat = self._ring_np if self._on_numpy(len(state)) else self._ring
-            self.renderer.render_into(flat, into * self._frames[0].numel(), *self._as_backend(views))
-            return self._frames[into]
-        return self._draw(views)
+        return state[:, 0, :2], target, state[..., :3], labels, state[:, 0, [X, Y, HEADING, CURVATURE]]
+
+    def _render_into(self, slot: int, views: tuple[torch.Tensor, ...]) -> None:
+        """Draw the views into the ring's ``slot`` (N of them), then its scratch pictures."""
+        flat = self._ring_np if self._on_numpy(len(views[0])) else self._ring
+        self.renderer.render_into(flat, slot * self._slot_size, *self._as_backend(views))
 
     def _on_numpy(self, n_views: int) -> bool:
         """Draw these views with numpy: on CPU, up to a few hundred views numpy's lower cost
