@@ -156,6 +156,8 @@ class BatchedLaneChange:
         slots = self._ring[:-1].view(frame_stack, 2 * n, b.height, b.width)
         self._frames, self._scratch = slots[:, :n], slots[:, n:]
         self._ring_np = self._ring.numpy() if dev.type == "cpu" else None  # the same memory
+        # on CPU, numpy's fancy indexing copies a few frames many times faster than torch's
+        self._frames_np = None if self._ring_np is None else self._frames.numpy()
         self._head = 0  # slot of the newest frame in the ring
         self._car_frames: torch.Tensor | None = None
         self._car_fresh = torch.zeros(n, c, dtype=torch.bool, device=dev)
@@ -180,12 +182,19 @@ class BatchedLaneChange:
             raise BatchedEnvError(f"{len(seeds)} seeds for {len(ids)} envs")
         idx, scenes = self._draw_scenes(ids, seeds)
         self._install(idx, scenes)
-        self._frames[:, idx] = self._draw(self._agent_views(*scenes[:4]))[None]
+        self._first_frames(idx, self._draw(self._agent_views(*scenes[:4])))
+
+    def _first_frames(self, idx: torch.Tensor, frames: torch.Tensor) -> None:
+        """Fill every slot of the frame stacks of envs ``idx`` with their first frames."""
+        if self._frames_np is not None:
+            self._frames_np[:, idx.numpy()] = frames.numpy()[None]
+        else:
+            self._frames[:, idx] = frames[None]
 
     def _draw_scenes(self, ids: list[int], seeds: Sequence[int | None] | None
                      ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         """New scenes of envs ``ids`` from their generators: the env index tensor and (state,
-        present, target lane, learned, car target, policy) on the engine's device."""
+        present, target lane, learned, car target, policy, reached) on the engine's device."""
         c = self.present.shape[1]
         state = np.zeros((len(ids), c, 5))
         present = np.zeros((len(ids), c), dtype=bool)
@@ -208,19 +217,23 @@ class BatchedLaneChange:
             learned[row, 1:1 + k] = scene.learned
             car_target[row, 0], car_target[row, 1:1 + k] = scene.target_lane, scene.car_target
             policy[row, 1:1 + k] = scene.policy
+        # reached_target at the start: the reference env's formula on the same numpy rows
+        y = body_corners(state[:, 0, X], state[:, 0, Y], state[:, 0, HEADING], self.cfg.vehicle_length,
+                         self.cfg.vehicle_width)[..., 1]
+        half, centre = 0.5 * self.cfg.lane_width, target * self.cfg.lane_width
+        reached = (centre - half <= y.min(-1)) & (y.max(-1) <= centre + half)
         dev = self.device
-        return torch.tensor(ids, device=dev), tuple(
-            torch.as_tensor(a, device=dev) for a in (state, present, target, learned, car_target, policy))
+        parts = (state, present, target, learned, car_target, policy, reached)
+        return torch.tensor(ids, device=dev), tuple(torch.as_tensor(a, device=dev) for a in parts)
 
     def _install(self, idx: torch.Tensor, scenes: tuple[torch.Tensor, ...]) -> None:
         """Envs ``idx`` start the episodes ``scenes`` (of :meth:`_draw_scenes`); frames aside."""
-        state, present, target, learned, car_target, policy = scenes
+        state, present, target, learned, car_target, policy, reached = scenes
         self.state[idx], self.present[idx], self.target_lane[idx] = state, present, target
         self.is_learned[idx], self.car_target[idx], self.policy[idx] = learned, car_target, policy
         self.steps[idx] = 0
         self.crashed[idx] = False
-        lo, hi = self._lateral_extent(state[:, 0])
-        self.reached[idx] = self._inside_target(lo, hi, target)
+        self.reached[idx] = reached
         self._car_fresh[idx] = True
 
     # ----------------------------------------------------------------------------- step
@@ -275,7 +288,7 @@ class BatchedLaneChange:
         out.reset_ids = idx
         out.final_observation = self.observation(idx)
         self._install(idx, scenes)
-        self._frames[:, idx] = self._scratch[self._head, : len(done)][None]
+        self._first_frames(idx, self._scratch[self._head, : len(done)])
         return out
 
     def state_dict(self) -> dict[str, Any]:
@@ -303,8 +316,12 @@ class BatchedLaneChange:
         """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor), of
         every env or of ``env_ids``."""
         order = [(self._head + k) % self.frame_stack for k in range(1, self.frame_stack + 1)]
-        frames = self._frames if env_ids is None else self._frames[:, env_ids]
-        return torch.stack([frames[k] for k in order], dim=1)
+        if env_ids is None:
+            return torch.stack([self._frames[k] for k in order], dim=1)
+        if self._frames_np is not None:
+            picked = self._frames_np[np.array(order)[:, None], env_ids.numpy()[None, :]]  # [S, K, H, W]
+            return torch.from_numpy(np.ascontiguousarray(picked.swapaxes(0, 1)))
+        return torch.stack([self._frames[k].index_select(0, env_ids) for k in order], dim=1)
 
     def newest_frame(self) -> torch.Tensor:
         """The last frame of every env ``[N, H, W]`` (a view of the ring)."""
@@ -336,8 +353,9 @@ class BatchedLaneChange:
         s[..., Y] += dy
         s[..., HEADING] = torch.where(straight, h, new_h)
 
-    def _corners(self, cars: torch.Tensor) -> torch.Tensor:
-        """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (the reference env's formula)."""
+    def _corners(self, cars: Any) -> Any:
+        """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (the reference env's formula;
+        numpy arrays or tensors)."""
         return body_corners(cars[..., X], cars[..., Y], cars[..., HEADING], self.cfg.vehicle_length,
                             self.cfg.vehicle_width)
 
@@ -356,29 +374,34 @@ class BatchedLaneChange:
         agent, others = self.state[:, :1], self.state[:, 1:]
         if others.shape[1] == 0:
             return torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        if self.device.type == "cpu":  # numpy (cheaper calls), the separating-axis test on close pairs
+            state, present = self.state.numpy(), self.present.numpy()
+            # the reference's own pre-check: np.linalg.norm of the centre offsets
+            close = np.linalg.norm(state[:, 1:, :2] - state[:, :1, :2], axis=-1) <= self._diag
+            env_i, car_i = np.nonzero(close & present[:, 1:])
+            hit = np.zeros(self.num_envs, dtype=bool)
+            hit[env_i[self._overlap(state[env_i, 0], state[env_i, car_i + 1])]] = True
+            return torch.from_numpy(hit)
+        # every pair: fixed shapes, no host sync
         close = torch.linalg.vector_norm(others[..., :2] - agent[..., :2], dim=-1) <= self._diag
-        close &= self.present[:, 1:]
-        hit = torch.zeros_like(close)
-        if self.device.type == "cpu":  # the separating-axis test on the close pairs only
-            env_i, car_i = torch.nonzero(close, as_tuple=True)
-            hit[env_i, car_i] = self._overlap(agent[env_i, 0], others[env_i, car_i])
-        else:  # every pair: fixed shapes, no host sync
-            hit = close & self._overlap(agent.expand_as(others), others)
-        return hit.any(-1)
+        return (close & self.present[:, 1:] & self._overlap(agent.expand_as(others), others)).any(-1)
 
-    def _overlap(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
-        """Whether car bodies ``[..., 5]`` overlap: highway-env's ``are_polygons_intersecting``
-        at zero velocity (the 4 edge normals of each body; touching counts)."""
+    def _overlap(self, first: Any, second: Any) -> Any:
+        """Whether car bodies ``[..., 5]`` (numpy arrays or tensors) overlap: highway-env's
+        ``are_polygons_intersecting`` at zero velocity (the 4 edge normals of each body;
+        touching counts)."""
+        xp: Any = np if isinstance(first, np.ndarray) else torch
         a, b = self._corners(first), self._corners(second)  # [..., 4, 2]
-        edges = torch.cat([a.roll(-1, dims=-2) - a, b.roll(-1, dims=-2) - b], dim=-2)  # [..., 8, 2]
+        nxt = [1, 2, 3, 0]  # each corner's next, around the body
+        edges = xp.concatenate([a[..., nxt, :] - a, b[..., nxt, :] - b], -2)  # [..., 8, 2]
         nx, ny = -edges[..., 1], edges[..., 0]
-        norm = torch.sqrt(nx * nx + ny * ny)
+        norm = xp.sqrt(nx * nx + ny * ny)
         nx, ny = (nx / norm)[..., None], (ny / norm)[..., None]  # [..., 8 axes, 1]
         pa = a[..., None, :, 0] * nx + a[..., None, :, 1] * ny  # [..., 8 axes, 4 corners]
         pb = b[..., None, :, 0] * nx + b[..., None, :, 1] * ny
-        min_a, max_a = pa.min(-1).values, pa.max(-1).values
-        min_b, max_b = pb.min(-1).values, pb.max(-1).values
-        gap = torch.where(min_a < min_b, min_b - max_a, min_a - max_b)
+        min_a, max_a = xp.amin(pa, -1), xp.amax(pa, -1)
+        min_b, max_b = xp.amin(pb, -1), xp.amax(pb, -1)
+        gap = xp.where(min_a < min_b, min_b - max_a, min_a - max_b)
         return (gap <= 0).all(-1)
 
     def _lane(self) -> torch.Tensor:
