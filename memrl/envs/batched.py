@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from gymnasium.utils.seeding import np_random
 
+from memrl.envs import batched_physics as physics
 from memrl.envs.batched_state import engine_state, load_engine_state
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import Opponents, make_opponents
@@ -34,6 +35,8 @@ X, Y, HEADING, SPEED, CURVATURE = range(5)
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
 NUMPY_MAX_VIEWS = 2048
 """On CPU, calls with at most this many views are drawn by the rasterizer's numpy path."""
+SCENE_PARTS = ("state", "present", "target_lane", "is_learned", "car_target", "policy", "reached")
+"""What a new scene sets, per env (names of the engine's arrays)."""
 INFO_KEYS = ("collided", "on_target_lane", "reached_target")
 """Per-step flags of the agent (the reference env's ``info`` keys of the same names)."""
 
@@ -69,7 +72,10 @@ def check_actions(action: Any, n: int, device: torch.device) -> torch.Tensor:
     if t.shape != (n,):
         raise BatchedEnvError(f"actions must have shape ({n},) (one per env), got {tuple(t.shape)}")
     t = t.to(device=device, dtype=torch.int64)
-    if bool(((t < 0) | (t >= N_ACTIONS)).any()):
+    # on CPU, numpy's reductions are cheaper calls; elsewhere one check on the device
+    out_of_range = (int(t.numpy().min()) < 0 or int(t.numpy().max()) >= N_ACTIONS) if device.type == "cpu" \
+        else bool(((t < 0) | (t >= N_ACTIONS)).any())
+    if out_of_range:
         bad = t[(t < 0) | (t >= N_ACTIONS)][0].item()
         raise BatchedEnvError(f"action {bad} is outside the valid range 0..{N_ACTIONS - 1}")
     return t
@@ -164,8 +170,16 @@ class BatchedLaneChange:
         if self.learned is not None:
             self._car_frames = torch.zeros(n, c, frame_stack, b.height, b.width, dtype=torch.uint8,
                                            device=dev)
-        self._ds = torch.tensor([a[0] for a in ACTIONS], dtype=f64, device=dev) * cfg.speed_step
-        self._dk = torch.tensor([a[1] for a in ACTIONS], dtype=f64, device=dev) * cfg.curvature_step
+        ds = torch.tensor([a[0] for a in ACTIONS], dtype=f64, device=dev) * cfg.speed_step
+        dk = torch.tensor([a[1] for a in ACTIONS], dtype=f64, device=dev) * cfg.curvature_step
+        self._tensors: dict[str, Any] = {
+            "state": self.state, "crashed": self.crashed, "reached": self.reached, "steps": self.steps,
+            "target_lane": self.target_lane, "present": self.present, "is_learned": self.is_learned,
+            "car_target": self.car_target, "policy": self.policy, "car_fresh": self._car_fresh,
+            "ds": ds, "dk": dk}
+        # on CPU the step's many small operations run on numpy views of the same memory
+        self._on_cpu = dev.type == "cpu"
+        self._arrays = {k: v.numpy() for k, v in self._tensors.items()} if self._on_cpu else self._tensors
         self._weights = [float(getattr(cfg.reward, k)) for k in REWARD_NAMES]
         self._diag = float(np.sqrt(cfg.vehicle_length ** 2 + cfg.vehicle_width ** 2))
 
@@ -192,9 +206,9 @@ class BatchedLaneChange:
             self._frames[:, idx] = frames[None]
 
     def _draw_scenes(self, ids: list[int], seeds: Sequence[int | None] | None
-                     ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        """New scenes of envs ``ids`` from their generators: the env index tensor and (state,
-        present, target lane, learned, car target, policy, reached) on the engine's device."""
+                     ) -> tuple[torch.Tensor, tuple[Any, ...]]:
+        """New scenes of envs ``ids`` from their generators: the env index tensor and their
+        :data:`SCENE_PARTS` (numpy arrays on CPU, else tensors on the engine's device)."""
         c = self.present.shape[1]
         state = np.zeros((len(ids), c, 5))
         present = np.zeros((len(ids), c), dtype=bool)
@@ -224,17 +238,18 @@ class BatchedLaneChange:
         reached = (centre - half <= y.min(-1)) & (y.max(-1) <= centre + half)
         dev = self.device
         parts = (state, present, target, learned, car_target, policy, reached)
+        if self._on_cpu:
+            return torch.tensor(ids), parts
         return torch.tensor(ids, device=dev), tuple(torch.as_tensor(a, device=dev) for a in parts)
 
-    def _install(self, idx: torch.Tensor, scenes: tuple[torch.Tensor, ...]) -> None:
+    def _install(self, idx: torch.Tensor, scenes: tuple[Any, ...]) -> None:
         """Envs ``idx`` start the episodes ``scenes`` (of :meth:`_draw_scenes`); frames aside."""
-        state, present, target, learned, car_target, policy, reached = scenes
-        self.state[idx], self.present[idx], self.target_lane[idx] = state, present, target
-        self.is_learned[idx], self.car_target[idx], self.policy[idx] = learned, car_target, policy
-        self.steps[idx] = 0
-        self.crashed[idx] = False
-        self.reached[idx] = reached
-        self._car_fresh[idx] = True
+        b, at = self._arrays, idx.numpy() if self._on_cpu else idx
+        for name, value in zip(SCENE_PARTS, scenes, strict=True):
+            b[name][at] = value
+        b["steps"][at] = 0
+        b["crashed"][at] = False
+        b["car_fresh"][at] = True
 
     # ----------------------------------------------------------------------------- step
     def step(self, actions: Any, active: torch.Tensor | None = None, auto_reset: bool = False) -> StepOut:
@@ -260,23 +275,28 @@ class BatchedLaneChange:
         else:
             car_actions = torch.full(self.present.shape, IDLE, dtype=torch.long, device=self.device)
         car_actions[:, 0] = a
-        self._apply(car_actions)
-        self._move()
-        self.steps += 1
-        self.crashed |= self._agent_collides()
-        lo, hi = self._lateral_extent(self.state[:, 0])
-        w = self.cfg.lane_width
-        self.crashed |= (lo < -0.5 * w) | (hi > (self.cfg.lanes_count - 0.5) * w)
-        self.reached |= self._inside_target(lo, hi, self.target_lane)
+        cfg, w, b = self.cfg, self.cfg.lane_width, self._arrays  # numpy views on CPU, else the tensors
+        acts = car_actions.numpy() if self._on_cpu else car_actions
+        low, high = cfg.speed_limits
+        physics.apply_actions(b["state"], b["ds"][acts], b["dk"][acts], (low, high), cfg.curvature_limit)
+        physics.move(b["state"], cfg.dt)
+        b["steps"] += 1
+        hit = self._agent_collides()
+        b["crashed"] |= hit.numpy() if self._on_cpu else hit
+        lo, hi = physics.lateral_extent(b["state"][:, 0], cfg.vehicle_length, cfg.vehicle_width)
+        b["crashed"] |= (lo < -0.5 * w) | (hi > (cfg.lanes_count - 0.5) * w)
+        b["reached"] |= physics.inside_target(lo, hi, b["target_lane"], w)
         self._head = (self._head + 1) % self.frame_stack
-        comps, on_target = self._components()
-        reward = torch.zeros(self.num_envs, dtype=torch.float64, device=self.device)
-        for i, weight in enumerate(self._weights):  # the reference's order of summation
-            reward = reward + weight * comps[:, i].to(torch.float64)
-        out = StepOut(reward, comps, self.crashed.clone(), self.steps >= self.cfg.duration,
-                      self.crashed.clone(), on_target, self.reached.clone())
-        views = self._agent_views(self.state, self.present, self.target_lane, self.is_learned)
-        done = torch.nonzero(out.terminated | out.truncated).flatten().tolist() if auto_reset else []
+        comps, on_target = self._components(b)
+        reward = physics.weighted_sum(comps, self._weights)
+        crashed, reached = b["crashed"], b["reached"]
+        parts = (reward, comps, crashed, b["steps"] >= cfg.duration, crashed, on_target, reached)
+        out = StepOut(*(torch.from_numpy(x.copy()) if self._on_cpu else x.clone() for x in parts))
+        views = self._agent_views(b["state"], b["present"], b["target_lane"], b["is_learned"])
+        done: list[int] = []
+        if auto_reset:
+            ended = parts[2] | parts[3]  # terminated | truncated
+            done = (np.flatnonzero(ended) if self._on_cpu else torch.nonzero(ended).flatten()).tolist()
         if not done:
             self._render_into(self._head, views)
             return out
@@ -284,7 +304,8 @@ class BatchedLaneChange:
         # new ones land in the scratch pictures that follow the ring's newest slot
         idx, scenes = self._draw_scenes(done, None)
         first = self._agent_views(*scenes[:4])
-        self._render_into(self._head, tuple(torch.cat([v, f]) for v, f in zip(views, first, strict=True)))
+        cat = np.concatenate if self._on_cpu else torch.cat
+        self._render_into(self._head, tuple(cat([v, f]) for v, f in zip(views, first, strict=True)))
         out.reset_ids = idx
         out.final_observation = self.observation(idx)
         self._install(idx, scenes)
@@ -306,11 +327,18 @@ class BatchedLaneChange:
         """The reference env's ``info`` of the current state, per env: speed [m/s], curvature
         [rad/m], lane, target_lane, rewards (``[N, 5]`` components), collided, on_target_lane,
         reached_target."""
-        comps, on_target = self._components()
-        agent = self.state[:, 0]
-        return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE], "lane": self._lane().long(),
+        comps, on_target = self._components(self._tensors)
+        agent, cfg = self.state[:, 0], self.cfg
+        return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE],
+                "lane": physics.lane(agent, cfg.lane_width, cfg.lanes_count).long(),
                 "target_lane": self.target_lane, "rewards": comps, "collided": self.crashed.clone(),
                 "on_target_lane": on_target, "reached_target": self.reached.clone()}
+
+    def _components(self, b: dict[str, Any]) -> tuple[Any, Any]:
+        """Reward components and on-target flags of the arrays ``b`` (numpy or tensors)."""
+        cfg = self.cfg
+        return physics.components(b["state"][:, 0], b["crashed"], b["target_lane"], cfg.lane_width,
+                                  cfg.lanes_count, cfg.lane_centre_tolerance, cfg.stopped_speed)
 
     def observation(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
         """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor), of
@@ -327,46 +355,11 @@ class BatchedLaneChange:
         """The last frame of every env ``[N, H, W]`` (a view of the ring)."""
         return self._frames[self._head]
 
-    def _apply(self, actions: torch.Tensor) -> None:
-        """Add the speed and curvature changes of the actions ``[N, C]`` to every car, clamp, round."""
-        cfg, s = self.cfg, self.state
-        low, high = cfg.speed_limits
-        speed = torch.clamp(s[..., SPEED] + self._ds[actions], float(low), float(high))
-        curv = torch.clamp(s[..., CURVATURE] + self._dk[actions], -cfg.curvature_limit, cfg.curvature_limit)
-        # round away float drift, as the reference does with round(x, 9)
-        s[..., SPEED] = torch.round(speed, decimals=9)
-        s[..., CURVATURE] = torch.round(curv, decimals=9)
-
-    def _move(self) -> None:
-        """Every car drives one ``dt`` along its exact arc (straight below a 1e-9 rad turn)."""
-        s = self.state
-        h, k = s[..., HEADING], s[..., CURVATURE]
-        distance = s[..., SPEED] * self.cfg.dt
-        turn = k * distance
-        straight = turn.abs() < 1e-9
-        radius = 1.0 / torch.where(straight, torch.ones_like(k), k)
-        new_h = h + turn
-        sin_h, cos_h = torch.sin(h), torch.cos(h)
-        dx = torch.where(straight, distance * cos_h, radius * (torch.sin(new_h) - sin_h))
-        dy = torch.where(straight, distance * sin_h, radius * (cos_h - torch.cos(new_h)))
-        s[..., X] += dx
-        s[..., Y] += dy
-        s[..., HEADING] = torch.where(straight, h, new_h)
-
     def _corners(self, cars: Any) -> Any:
         """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (the reference env's formula;
         numpy arrays or tensors)."""
         return body_corners(cars[..., X], cars[..., Y], cars[..., HEADING], self.cfg.vehicle_length,
                             self.cfg.vehicle_width)
-
-    def _lateral_extent(self, agent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        y = self._corners(agent)[..., 1]
-        return y.min(-1).values, y.max(-1).values
-
-    def _inside_target(self, lo: torch.Tensor, hi: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        w = self.cfg.lane_width
-        y = target.to(torch.float64) * w
-        return (y - 0.5 * w <= lo) & (hi <= y + 0.5 * w)
 
     def _agent_collides(self) -> torch.Tensor:
         """Agent against every other car: highway-env's separating-axis test on the bodies,
@@ -391,43 +384,30 @@ class BatchedLaneChange:
         ``are_polygons_intersecting`` at zero velocity (the 4 edge normals of each body;
         touching counts)."""
         xp: Any = np if isinstance(first, np.ndarray) else torch
-        a, b = self._corners(first), self._corners(second)  # [..., 4, 2]
+        both = self._corners(xp.stack([first, second]))  # [2, ..., 4, 2] (a, b)
         nxt = [1, 2, 3, 0]  # each corner's next, around the body
+        a, b = both[0], both[1]
         edges = xp.concatenate([a[..., nxt, :] - a, b[..., nxt, :] - b], -2)  # [..., 8, 2]
-        nx, ny = -edges[..., 1], edges[..., 0]
+        nx, ny = -edges[..., 1], edges[..., 0]  # [..., 8 edges]
         norm = xp.sqrt(nx * nx + ny * ny)
         nx, ny = (nx / norm)[..., None], (ny / norm)[..., None]  # [..., 8 axes, 1]
-        pa = a[..., None, :, 0] * nx + a[..., None, :, 1] * ny  # [..., 8 axes, 4 corners]
-        pb = b[..., None, :, 0] * nx + b[..., None, :, 1] * ny
-        min_a, max_a = xp.amin(pa, -1), xp.amax(pa, -1)
-        min_b, max_b = xp.amin(pb, -1), xp.amax(pb, -1)
+        proj = both[..., None, :, 0] * nx + both[..., None, :, 1] * ny  # [2, ..., 8 axes, 4 corners]
+        low, high = xp.amin(proj, -1), xp.amax(proj, -1)
+        (min_a, min_b), (max_a, max_b) = low, high
         gap = xp.where(min_a < min_b, min_b - max_a, min_a - max_b)
         return (gap <= 0).all(-1)
 
-    def _lane(self) -> torch.Tensor:
-        """Lane holding the agent's centre (clipped to the road), as float64."""
-        w = self.cfg.lane_width
-        return torch.clamp(torch.floor(self.state[:, 0, Y] / w + 0.5), 0, self.cfg.lanes_count - 1)
-
-    def _components(self) -> tuple[torch.Tensor, torch.Tensor]:
-        cfg, agent = self.cfg, self.state[:, 0]
-        lane = self._lane()
-        offset = agent[:, Y] - lane * cfg.lane_width
-        on_target = lane.long() == self.target_lane
-        comps = torch.stack([self.crashed, offset.abs() <= cfg.lane_centre_tolerance,
-                             agent[:, SPEED] <= cfg.stopped_speed, on_target, ~on_target], dim=-1)
-        return comps, on_target
-
     # --------------------------------------------------------------------------- frames
-    def _agent_views(self, state: torch.Tensor, present: torch.Tensor, target: torch.Tensor,
-                     learned: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The agents' views (center, target, cars, labels, path) of envs in these states."""
-        labels = torch.where(learned, LABEL["learned"], LABEL["constant"])
+    def _agent_views(self, state: Any, present: Any, target: Any, learned: Any) -> tuple[Any, ...]:
+        """The agents' views (center, target, cars, labels, path) of envs in these states
+        (numpy arrays or tensors)."""
+        where: Any = np.where if isinstance(state, np.ndarray) else torch.where
+        labels = where(learned, LABEL["learned"], LABEL["constant"])
         labels[:, 0] = LABEL["agent"]
-        labels = torch.where(present, labels, -1)
+        labels = where(present, labels, -1)
         return state[:, 0, :2], target, state[..., :3], labels, state[:, 0, [X, Y, HEADING, CURVATURE]]
 
-    def _render_into(self, slot: int, views: tuple[torch.Tensor, ...]) -> None:
+    def _render_into(self, slot: int, views: tuple[Any, ...]) -> None:
         """Draw the views into the ring's ``slot`` (N of them), then its scratch pictures."""
         flat = self._ring_np if self._on_numpy(len(views[0])) else self._ring
         self.renderer.render_into(flat, slot * self._slot_size, *self._as_backend(views))
@@ -437,10 +417,13 @@ class BatchedLaneChange:
         per call wins (same code, same pixels; ``python -m memrl.bench batched`` times it)."""
         return self._ring_np is not None and n_views <= NUMPY_MAX_VIEWS
 
-    def _as_backend(self, views: tuple[torch.Tensor, ...]) -> tuple[Any, ...]:
-        return tuple(v.numpy() for v in views) if self._on_numpy(len(views[0])) else views
+    def _as_backend(self, views: tuple[Any, ...]) -> tuple[Any, ...]:
+        """The views as numpy arrays for the rasterizer's numpy path, else as tensors."""
+        if self._on_numpy(len(views[0])):
+            return tuple(v if isinstance(v, np.ndarray) else v.numpy() for v in views)
+        return tuple(torch.as_tensor(v, device=self.device) for v in views)
 
-    def _draw(self, views: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    def _draw(self, views: tuple[Any, ...]) -> torch.Tensor:
         """Pictures ``[V, H, W]`` of the views (center, target, cars, labels, path) as a tensor."""
         img = self.renderer.render_batch(*self._as_backend(views))
         return torch.from_numpy(img) if isinstance(img, np.ndarray) else img

@@ -116,10 +116,9 @@ class _Ops:
 
     def take_rows(self, source: Any, index: Any, out: Any) -> None:
         """``out[i] = source[index[i]]`` for rows, written straight into ``out``."""
-        if self.is_torch:
-            torch.index_select(source, 0, index, out=out)
-        else:
-            np.take(source, index, axis=0, out=out)
+        if not self.is_torch:  # torch's row gather beats np.take: run it on the same memory
+            source, index, out = torch.from_numpy(source), torch.from_numpy(index), torch.from_numpy(out)
+        torch.index_select(source, 0, index, out=out)
 
     def zeros(self, shape: tuple[int, ...], like: Any) -> Any:
         if self.is_torch:
@@ -229,6 +228,7 @@ class BEVRenderer:
         self._half_span = 0.5 * h * view.longitudinal_scale  # [m] shown ahead and behind
         line = max(view.lateral_scale, 0.15)
         step = 0.5 * min(view.lateral_scale, view.longitudinal_scale)
+        left, right = -0.5 * lane_width, (lanes_count - 0.5) * lane_width
         consts = {
             "table": table,
             "labels": np.arange(len(LABELS), dtype=np.uint8),
@@ -236,6 +236,9 @@ class BEVRenderer:
             "cols": np.arange(max(w, self._win_cols), dtype=np.int64),
             "rows": np.arange(h, dtype=np.int64)[None, :],
             "dividers": (np.arange(1, lanes_count) - 0.5) * lane_width,
+            # world bands across the road [m]: the road, its left and right edge markings
+            "road_bands": np.array([left, right, left, left + line, right - line, right]),
+            "lane_half": np.array([-0.5 * lane_width, 0.5 * lane_width]),
             # columns per divider band
             "div_k": np.arange(math.ceil(line / view.lateral_scale) + 1, dtype=np.float64),
             # dashes that can show in a crop: 2 * half_span of road plus a period on each side
@@ -297,18 +300,20 @@ class BEVRenderer:
             """The first column whose centre lies at or beyond world y across the road."""
             return x_.ceil(0.5 * v.width + (y - cy) / v.lateral_scale - 0.5)
 
-        def band(y0: Any, y1: Any) -> Any:
-            """[V, W]: columns whose centres lie in the world band [y0, y1) across the road."""
-            return (j >= edges(y0)) & (j < edges(y1))
+        def bands(y: Any) -> Any:
+            """[V, B, W]: columns whose centres lie in the world bands [y[2b], y[2b + 1]) across
+            the road, for bounds ``y`` [B * 2] or [V, B * 2]."""
+            e = edges(y)
+            return (j >= e[:, 0::2, None]) & (j < e[:, 1::2, None])
 
-        left, right = -0.5 * w, (n - 0.5) * w
-        col = x_.where(band(left, right), values[LABEL["road"]], values[LABEL["offroad"]])
+        # the road, then its two edge markings
+        road = bands(k["road_bands"])  # [V, 3, W]
+        col = x_.where(road[:, 0], values[LABEL["road"]], values[LABEL["offroad"]])
         if self.show_target_lane:
-            t = (x_.f64(target_lane) * w)[:, None]
-            col = x_.where(band(t - 0.5 * w, t + 0.5 * w) & (target_lane[:, None] >= 0),
-                           values[LABEL["target_lane"]], col)
+            t = (x_.f64(target_lane) * w)[:, None] + k["lane_half"]  # [V, 2] the lane's bounds
+            col = x_.where(bands(t)[:, 0] & (target_lane[:, None] >= 0), values[LABEL["target_lane"]], col)
+        col = x_.where(road[:, 1] | road[:, 2], values[LABEL["marking"]], col)
         line = max(v.lateral_scale, 0.15)  # markings: at least 1 px, at most 0.15 m wide
-        col = x_.where(band(left, left + line) | band(right - line, right), values[LABEL["marking"]], col)
         n_views = len(center)
         pictures = flat[start: start + n_views * v.height * v.width].reshape(n_views, v.height, v.width)
         if n < 2:
