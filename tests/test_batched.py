@@ -66,6 +66,36 @@ def test_auto_reset_steps_match_the_reference(backend):
     assert tally.resets > 16 and tally.collisions > 0
 
 
+@pytest.mark.parametrize("config", [NON_GOAL, {"opponent": {"type": "mixed", "pool": "POOL", "epsilon": 0.2},
+                                              "vehicles_count": 3}])
+def test_auto_reset_step_equals_step_then_reset(config, pool):
+    """Same episodes, flags and frame stacks; ``final_observation`` is the stack a separate
+    reset would have replaced."""
+    if "opponent" in config:
+        config = {**config, "opponent": {**config["opponent"], "pool": pool}}
+    n, rng = 10, np.random.default_rng(0)
+    fused, split = BatchedLaneChange(config, n), BatchedLaneChange(config, n)
+    fused.reset(seeds=list(range(n)))
+    split.reset(seeds=list(range(n)))
+    resets = 0
+    for _ in range(80):
+        actions = torch.as_tensor(rng.integers(9, size=n))
+        a, b = fused.step(actions, auto_reset=True), split.step(actions)
+        for key in ("reward", "components", "terminated", "truncated", "collided", "reached_target"):
+            assert torch.equal(getattr(a, key), getattr(b, key)), key
+        done = torch.nonzero(b.terminated | b.truncated).flatten()
+        if len(done):
+            assert a.reset_ids is not None and torch.equal(a.reset_ids, done)
+            assert torch.equal(a.final_observation, split.observation()[done])
+            split.reset(done)
+            resets += len(done)
+        else:
+            assert a.reset_ids is None and a.final_observation is None
+        assert torch.equal(fused.observation(), split.observation())
+        assert torch.equal(fused.state, split.state) and torch.equal(fused.steps, split.steps)
+    assert resets > n
+
+
 def test_steady_driving_matches_the_reference_through_truncations():
     """16 seeds x 310 steps of 'keep speed and curvature' among 5 cars: rear-end crashes, and
     episodes that last the full 300 steps and are truncated, then reset."""
