@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from memrl.envs.batched import REWARD_NAMES, BatchedLaneChange
+from memrl.envs.batched import REWARD_NAMES, BatchedLaneChange, StepOut
 from memrl.envs.lane_change import LaneChangeEnv
 
 STATE_ATOL = 1e-9
@@ -37,10 +37,11 @@ def car_states(env: LaneChangeEnv) -> np.ndarray:
 
 def compare(config: dict, seeds: list[int], steps: int,
             act: Callable[[list[LaneChangeEnv], np.random.Generator], np.ndarray],
-            device: str = "cpu", state_atol: float = STATE_ATOL) -> Tally:
+            device: str = "cpu", state_atol: float = STATE_ATOL, auto_reset: bool = False) -> Tally:
     """Run ``len(seeds)`` reference envs and one batched engine with the same seeds and
     actions for ``steps`` steps (finished episodes reset in both), asserting identical
-    frames, rewards, components, flags and states within ``state_atol``."""
+    frames, rewards, components, flags and states within ``state_atol``. ``auto_reset``: the
+    engine resets finished envs inside its step (``step(auto_reset=True)``)."""
     refs = [LaneChangeEnv(config=config) for _ in seeds]
     for env, seed in zip(refs, seeds, strict=True):
         env.reset(seed=seed)
@@ -55,26 +56,24 @@ def compare(config: dict, seeds: list[int], steps: int,
     for _ in range(steps):
         actions = act(refs, rng)
         tally.actions.append(actions)
-        out = engine.step(torch.as_tensor(actions, device=engine.device))
+        out = engine.step(torch.as_tensor(actions, device=engine.device), auto_reset=auto_reset)
         frames = engine.newest_frame().cpu().numpy()
         state = engine.state.cpu().numpy()
         present = engine.present.cpu().numpy()
+        final = _final_frames(out)
+        assert auto_reset or not final
         done = []
         for i, env in enumerate(refs):
             obs, reward, terminated, truncated, info = env.step(int(actions[i]))
-            assert np.array_equal(frames[i], obs[0]), f"env {i} step {env.steps}: frames differ"
-            assert out.reward[i].item() == reward
-            assert out.components[i].tolist() == [bool(info["rewards"][k]) for k in REWARD_NAMES]
-            assert bool(out.terminated[i]) == terminated and bool(out.truncated[i]) == truncated
-            assert bool(out.collided[i]) == bool(info["collided"])
-            assert bool(out.on_target_lane[i]) == bool(info["on_target_lane"])
-            assert bool(out.reached_target[i]) == bool(info["reached_target"])
-            expected = car_states(env)
-            got = state[i][present[i]]
-            assert got.shape == expected.shape
-            diff = float(np.abs(got - expected).max())
-            assert diff <= state_atol, f"env {i}: states differ by {diff}"
-            tally.max_state_diff = max(tally.max_state_diff, diff)
+            assert np.array_equal(final.get(i, frames[i]), obs[0]), f"env {i} step {env.steps}: frames differ"
+            _assert_outcome(out, i, reward, terminated, truncated, info)
+            if i not in final:  # (a reset env's state is checked against the new scene below)
+                expected = car_states(env)
+                got = state[i][present[i]]
+                assert got.shape == expected.shape
+                diff = float(np.abs(got - expected).max())
+                assert diff <= state_atol, f"env {i}: states differ by {diff}"
+                tally.max_state_diff = max(tally.max_state_diff, diff)
             tally.steps += 1
             if terminated:
                 lo, hi = env._lateral_extent(env.vehicle)
@@ -85,14 +84,44 @@ def compare(config: dict, seeds: list[int], steps: int,
                 tally.reached += int(info["reached_target"])
                 env.reset()
                 done.append(i)
+        assert sorted(final) == (done if auto_reset else [])
         if done:
-            engine.reset(done)
+            if not auto_reset:
+                engine.reset(done)
             tally.resets += len(done)
-            frames = engine.newest_frame().cpu().numpy()
-            for i in done:
-                first = refs[i].observe_from(refs[i].vehicle, refs[i].target_lane)[0]
-                assert np.array_equal(frames[i], first)
+            _assert_new_episodes(engine, refs, done)
     return tally
+
+
+def _final_frames(out: StepOut) -> dict[int, np.ndarray]:
+    """The last frames of the episodes that ``step(auto_reset=True)`` finished, by env."""
+    if out.reset_ids is None:
+        return {}
+    assert out.final_observation is not None
+    return {i: out.final_observation[row, -1].cpu().numpy() for row, i in enumerate(out.reset_ids.tolist())}
+
+
+def _assert_new_episodes(engine: BatchedLaneChange, refs: list[LaneChangeEnv], done: list[int]) -> None:
+    """The reset envs start where the reset reference envs start: frames, stacks, cars."""
+    frames = engine.newest_frame().cpu().numpy()
+    obs = engine.observation().cpu().numpy()
+    state = engine.state.cpu().numpy()
+    for i in done:
+        first = refs[i].observe_from(refs[i].vehicle, refs[i].target_lane)[0]
+        assert np.array_equal(frames[i], first)
+        assert (obs[i] == first).all()  # the first frame repeated through the stack
+        assert np.array_equal(state[i][engine.present[i].cpu().numpy()], car_states(refs[i]))
+
+
+def _assert_outcome(out: StepOut, i: int, reward: float, terminated: bool, truncated: bool,
+                    info: dict) -> None:
+    """Env ``i``'s reward, components and flags of the engine's step are the reference's."""
+    assert out.reward[i].item() == reward
+    assert out.components[i].tolist() == [bool(info["rewards"][k]) for k in REWARD_NAMES]
+    assert bool(out.terminated[i]) == terminated and bool(out.truncated[i]) == truncated
+    assert bool(out.collided[i]) == bool(info["collided"])
+    assert bool(out.on_target_lane[i]) == bool(info["on_target_lane"])
+    assert bool(out.reached_target[i]) == bool(info["reached_target"])
 
 
 def random_actions(p_random: float) -> Callable[[list[LaneChangeEnv], np.random.Generator], np.ndarray]:

@@ -59,6 +59,43 @@ def test_random_actions_match_the_reference_step_for_step_with_collisions_walls_
     assert tally.resets > 32  # every env went through several auto-resets
 
 
+def test_auto_reset_steps_match_the_reference(backend):
+    """``step(auto_reset=True)`` resets finished envs inside the step (one render call for the
+    last and the first frames): the same episodes, last frames and first frames as a reset."""
+    tally = compare(NON_GOAL, list(range(300, 316)), 200, random_actions(1.0), auto_reset=True)
+    assert tally.resets > 16 and tally.collisions > 0
+
+
+@pytest.mark.parametrize("config", [NON_GOAL, {"opponent": {"type": "mixed", "pool": "POOL", "epsilon": 0.2},
+                                              "vehicles_count": 3}])
+def test_auto_reset_step_equals_step_then_reset(config, pool):
+    """Same episodes, flags and frame stacks; ``final_observation`` is the stack a separate
+    reset would have replaced."""
+    if "opponent" in config:
+        config = {**config, "opponent": {**config["opponent"], "pool": pool}}
+    n, rng = 10, np.random.default_rng(0)
+    fused, split = BatchedLaneChange(config, n), BatchedLaneChange(config, n)
+    fused.reset(seeds=list(range(n)))
+    split.reset(seeds=list(range(n)))
+    resets = 0
+    for _ in range(80):
+        actions = torch.as_tensor(rng.integers(9, size=n))
+        a, b = fused.step(actions, auto_reset=True), split.step(actions)
+        for key in ("reward", "components", "terminated", "truncated", "collided", "reached_target"):
+            assert torch.equal(getattr(a, key), getattr(b, key)), key
+        done = torch.nonzero(b.terminated | b.truncated).flatten()
+        if len(done):
+            assert a.reset_ids is not None and torch.equal(a.reset_ids, done)
+            assert torch.equal(a.final_observation, split.observation()[done])
+            split.reset(done)
+            resets += len(done)
+        else:
+            assert a.reset_ids is None and a.final_observation is None
+        assert torch.equal(fused.observation(), split.observation())
+        assert torch.equal(fused.state, split.state) and torch.equal(fused.steps, split.steps)
+    assert resets > n
+
+
 def test_steady_driving_matches_the_reference_through_truncations():
     """16 seeds x 310 steps of 'keep speed and curvature' among 5 cars: rear-end crashes, and
     episodes that last the full 300 steps and are truncated, then reset."""
@@ -100,6 +137,7 @@ def test_learned_cars_act_as_the_reference_controller_does(pool, kind):
     config = {"opponent": {"type": kind, "pool": pool, "epsilon": 0.1}, "vehicles_count": 4}
     tally = compare(config, list(range(4)), 100, random_actions(0.3))
     assert tally.steps == 4 * 100
+    compare(config, list(range(4, 8)), 60, random_actions(1.0), auto_reset=True)
 
 
 def test_learned_cars_of_all_envs_share_one_forward_pass_per_step(pool):
@@ -262,6 +300,33 @@ def test_scene_sampler_is_the_reference_envs_draw():
     scene = sample_scene(env.cfg, np_random(5)[0])
     assert np.array_equal(np.vstack([scene.agent, scene.others]), car_states(env))
     assert scene.target_lane == env.target_lane
+
+
+SCENE_DIGEST = "e2eb5d7a213957a9a1cb33007a0591ee2bfa8cd2f8ff16c5061b109361c42e7f"
+"""sha256 of the scenes below as the sampler drew them before its speed-ups."""
+
+
+def test_scene_sampler_draws_the_same_scenes_from_the_same_seeds_as_before():
+    """Seeds reproduce episodes across versions: 5 configs x 300 seeds x 3 scenes each."""
+    import hashlib
+
+    from gymnasium.utils.seeding import np_random
+
+    from memrl.envs.config import env_config_dict, validate_env_config
+
+    configs = [{}, NON_GOAL, {"target_lane": 1, "lanes_count": 3, "vehicles_count": 4},
+               {**OFF_NOMINAL, "spawn_attempts": 3},
+               {"vehicles_count": 8, "spawn_ahead": 30.0, "opponent": {"type": "mixed", "pool": ["x"]}}]
+    digest = hashlib.sha256()
+    for config in configs:
+        cfg = validate_env_config({**env_config_dict(), **config})
+        for seed in range(300):
+            rng = np_random(seed)[0]
+            for _ in range(3):
+                s = sample_scene(cfg, rng, 3)
+                digest.update(repr((s.target_lane, s.agent.tolist(), s.others.tolist(), s.learned.tolist(),
+                                    s.car_target.tolist(), s.policy.tolist())).encode())
+    assert digest.hexdigest() == SCENE_DIGEST
 
 
 @pytest.mark.parametrize("channels", [1, 3])

@@ -2,8 +2,11 @@
 highway-env's ``highway-fast-v0`` (gray 84x84x4), measured in the same run.
 
 Every env runs uniformly random actions from a seeded generator and resets finished
-episodes; the batched engine renders every frame (the agent's, and each learned car's own
-view) into its frame ring. Rates are env steps per second of wall time.
+episodes (the batched engine inside its step, ``step(auto_reset=True)``, which also returns the
+finished episodes' last observations; at N=256 also with a separate ``reset()`` call); the
+batched engine renders every frame (the agent's, and each learned car's own view) into its
+frame ring. Rates are env steps per second of wall time; the JSON records the device and the
+torch thread count.
 """
 
 from __future__ import annotations
@@ -20,8 +23,11 @@ import torch
 from memrl.benchmarks.env_speed import _time_gym, highway_fast_config
 
 
-def _time_batched(config: dict[str, Any], n: int, seconds: float, device: torch.device, seed: int) -> float:
-    """Env steps/s of the batched engine with N envs, random actions, finished envs reset."""
+def _time_batched(config: dict[str, Any], n: int, seconds: float, device: torch.device, seed: int,
+                  auto_reset: bool = True) -> float:
+    """Env steps/s of the batched engine with N envs, random actions, finished envs reset:
+    inside the step (``auto_reset``, the last and first frames drawn in one call) or by a
+    :meth:`reset` call after it."""
     from memrl.envs.batched import BatchedLaneChange
 
     engine = BatchedLaneChange(config, n, device)
@@ -29,10 +35,11 @@ def _time_batched(config: dict[str, Any], n: int, seconds: float, device: torch.
     gen = torch.Generator(device=device).manual_seed(seed)
 
     def step() -> None:
-        out = engine.step(torch.randint(0, 9, (n,), generator=gen, device=device))
-        done = torch.nonzero(out.terminated | out.truncated).flatten()
-        if len(done):
-            engine.reset(done)
+        out = engine.step(torch.randint(0, 9, (n,), generator=gen, device=device), auto_reset=auto_reset)
+        if not auto_reset:
+            done = torch.nonzero(out.terminated | out.truncated).flatten()
+            if len(done):
+                engine.reset(done)
 
     for _ in range(3):  # warm-up: allocations, caches
         step()
@@ -95,6 +102,12 @@ def _run(sizes: list[int], gpu_sizes: list[int], seconds: float, reference_steps
     all_sizes = list(sizes) + (list(gpu_sizes) if dev.type == "cuda" else [])
     res["constant"] = {str(n): _time_batched(constant, n, seconds, dev, seed) for n in all_sizes}
     res["constant_ratio_to_reference"] = {n: r / ref for n, r in res["constant"].items()}
+    res["reset"] = ("finished envs reset inside the step (step(auto_reset=True): their last and first "
+                    "frames drawn in one call); constant_reset_after_step: reset() called after step()")
+    if 256 in all_sizes:  # the same loop with a separate reset call, for comparison
+        rate = _time_batched(constant, 256, seconds, dev, seed, auto_reset=False)
+        res["constant_reset_after_step"] = {"256": rate}
+        res["constant_reset_after_step_ratio_to_reference"] = {"256": rate / ref}
     if learned:
         from memrl.checkpoint import save_qnet
         from memrl.modules.qnet import QNetwork

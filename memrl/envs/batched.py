@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from gymnasium.utils.seeding import np_random
 
+from memrl.envs import batched_physics as physics
 from memrl.envs.batched_state import engine_state, load_engine_state
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import Opponents, make_opponents
@@ -32,8 +33,10 @@ from memrl.errors import UserError
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
-NUMPY_MAX_VIEWS = 256
+NUMPY_MAX_VIEWS = 2048
 """On CPU, calls with at most this many views are drawn by the rasterizer's numpy path."""
+SCENE_PARTS = ("state", "present", "target_lane", "is_learned", "car_target", "policy", "reached")
+"""What a new scene sets, per env (names of the engine's arrays)."""
 INFO_KEYS = ("collided", "on_target_lane", "reached_target")
 """Per-step flags of the agent (the reference env's ``info`` keys of the same names)."""
 
@@ -69,7 +72,10 @@ def check_actions(action: Any, n: int, device: torch.device) -> torch.Tensor:
     if t.shape != (n,):
         raise BatchedEnvError(f"actions must have shape ({n},) (one per env), got {tuple(t.shape)}")
     t = t.to(device=device, dtype=torch.int64)
-    if bool(((t < 0) | (t >= N_ACTIONS)).any()):
+    # on CPU, numpy's reductions are cheaper calls; elsewhere one check on the device
+    out_of_range = (int(t.numpy().min()) < 0 or int(t.numpy().max()) >= N_ACTIONS) if device.type == "cpu" \
+        else bool(((t < 0) | (t >= N_ACTIONS)).any())
+    if out_of_range:
         bad = t[(t < 0) | (t >= N_ACTIONS)][0].item()
         raise BatchedEnvError(f"action {bad} is outside the valid range 0..{N_ACTIONS - 1}")
     return t
@@ -88,6 +94,10 @@ class StepOut:
     collided: torch.Tensor
     on_target_lane: torch.Tensor
     reached_target: torch.Tensor
+    reset_ids: torch.Tensor | None = None
+    """``step(auto_reset=True)``: the envs this step finished and reset (else None)."""
+    final_observation: torch.Tensor | None = None
+    """``step(auto_reset=True)``: their last observations ``[K, S, H, W]``, before the reset."""
 
 
 class BatchedLaneChange:
@@ -144,18 +154,32 @@ class BatchedLaneChange:
             View(b.width, b.height, b.lateral_scale, b.longitudinal_scale), cfg.lanes_count,
             cfg.lane_width, (cfg.vehicle_length, cfg.vehicle_width), show_target_lane=b.show_target_lane,
             dash_length=b.dash_length, path_length=b.path_length, channels=1, device=dev)
-        # frame ring [S, N, H, W] in one flat buffer with a spare last byte (the renderer's)
-        self._ring = torch.zeros(frame_stack * n * b.height * b.width + 1, dtype=torch.uint8, device=dev)
-        self._frames = self._ring[:-1].view(frame_stack, n, b.height, b.width)
+        # frame ring [S, N, H, W] in one flat buffer: each slot followed by N scratch pictures
+        # (first frames of envs reset in the same render call, see step), then a spare last
+        # byte (the renderer's)
+        self._slot_size = 2 * n * b.height * b.width
+        self._ring = torch.zeros(frame_stack * self._slot_size + 1, dtype=torch.uint8, device=dev)
+        slots = self._ring[:-1].view(frame_stack, 2 * n, b.height, b.width)
+        self._frames, self._scratch = slots[:, :n], slots[:, n:]
         self._ring_np = self._ring.numpy() if dev.type == "cpu" else None  # the same memory
+        # on CPU, numpy's fancy indexing copies a few frames many times faster than torch's
+        self._frames_np = None if self._ring_np is None else self._frames.numpy()
         self._head = 0  # slot of the newest frame in the ring
         self._car_frames: torch.Tensor | None = None
         self._car_fresh = torch.zeros(n, c, dtype=torch.bool, device=dev)
         if self.learned is not None:
             self._car_frames = torch.zeros(n, c, frame_stack, b.height, b.width, dtype=torch.uint8,
                                            device=dev)
-        self._ds = torch.tensor([a[0] for a in ACTIONS], dtype=f64, device=dev) * cfg.speed_step
-        self._dk = torch.tensor([a[1] for a in ACTIONS], dtype=f64, device=dev) * cfg.curvature_step
+        ds = torch.tensor([a[0] for a in ACTIONS], dtype=f64, device=dev) * cfg.speed_step
+        dk = torch.tensor([a[1] for a in ACTIONS], dtype=f64, device=dev) * cfg.curvature_step
+        self._tensors: dict[str, Any] = {
+            "state": self.state, "crashed": self.crashed, "reached": self.reached, "steps": self.steps,
+            "target_lane": self.target_lane, "present": self.present, "is_learned": self.is_learned,
+            "car_target": self.car_target, "policy": self.policy, "car_fresh": self._car_fresh,
+            "ds": ds, "dk": dk}
+        # on CPU the step's many small operations run on numpy views of the same memory
+        self._on_cpu = dev.type == "cpu"
+        self._arrays = {k: v.numpy() for k, v in self._tensors.items()} if self._on_cpu else self._tensors
         self._weights = [float(getattr(cfg.reward, k)) for k in REWARD_NAMES]
         self._diag = float(np.sqrt(cfg.vehicle_length ** 2 + cfg.vehicle_width ** 2))
 
@@ -170,6 +194,21 @@ class BatchedLaneChange:
             return
         if seeds is not None and len(seeds) != len(ids):
             raise BatchedEnvError(f"{len(seeds)} seeds for {len(ids)} envs")
+        idx, scenes = self._draw_scenes(ids, seeds)
+        self._install(idx, scenes)
+        self._first_frames(idx, self._draw(self._agent_views(*scenes[:4])))
+
+    def _first_frames(self, idx: torch.Tensor, frames: torch.Tensor) -> None:
+        """Fill every slot of the frame stacks of envs ``idx`` with their first frames."""
+        if self._frames_np is not None:
+            self._frames_np[:, idx.numpy()] = frames.numpy()[None]
+        else:
+            self._frames[:, idx] = frames[None]
+
+    def _draw_scenes(self, ids: list[int], seeds: Sequence[int | None] | None
+                     ) -> tuple[torch.Tensor, tuple[Any, ...]]:
+        """New scenes of envs ``ids`` from their generators: the env index tensor and their
+        :data:`SCENE_PARTS` (numpy arrays on CPU, else tensors on the engine's device)."""
         c = self.present.shape[1]
         state = np.zeros((len(ids), c, 5))
         present = np.zeros((len(ids), c), dtype=bool)
@@ -192,28 +231,41 @@ class BatchedLaneChange:
             learned[row, 1:1 + k] = scene.learned
             car_target[row, 0], car_target[row, 1:1 + k] = scene.target_lane, scene.car_target
             policy[row, 1:1 + k] = scene.policy
-        idx = torch.tensor(ids, device=self.device)
+        # reached_target at the start: the reference env's formula on the same numpy rows
+        y = body_corners(state[:, 0, X], state[:, 0, Y], state[:, 0, HEADING], self.cfg.vehicle_length,
+                         self.cfg.vehicle_width)[..., 1]
+        half, centre = 0.5 * self.cfg.lane_width, target * self.cfg.lane_width
+        reached = (centre - half <= y.min(-1)) & (y.max(-1) <= centre + half)
         dev = self.device
-        self.state[idx] = torch.as_tensor(state, dtype=torch.float64, device=dev)
-        self.present[idx] = torch.as_tensor(present, device=dev)
-        self.is_learned[idx] = torch.as_tensor(learned, device=dev)
-        self.car_target[idx] = torch.as_tensor(car_target, device=dev)
-        self.policy[idx] = torch.as_tensor(policy, device=dev)
-        self.target_lane[idx] = torch.as_tensor(target, device=dev)
-        self.steps[idx] = 0
-        self.crashed[idx] = False
-        lo, hi = self._lateral_extent(self.state[idx, 0])
-        self.reached[idx] = self._inside_target(lo, hi, self.target_lane[idx])
-        self._frames[:, idx] = self._render_agents(idx)[None]
-        self._car_fresh[idx] = True
+        parts = (state, present, target, learned, car_target, policy, reached)
+        if self._on_cpu:
+            return torch.tensor(ids), parts
+        return torch.tensor(ids, device=dev), tuple(torch.as_tensor(a, device=dev) for a in parts)
+
+    def _install(self, idx: torch.Tensor, scenes: tuple[Any, ...]) -> None:
+        """Envs ``idx`` start the episodes ``scenes`` (of :meth:`_draw_scenes`); frames aside."""
+        b, at = self._arrays, idx.numpy() if self._on_cpu else idx
+        for name, value in zip(SCENE_PARTS, scenes, strict=True):
+            b[name][at] = value
+        b["steps"][at] = 0
+        b["crashed"][at] = False
+        b["car_fresh"][at] = True
 
     # ----------------------------------------------------------------------------- step
-    def step(self, actions: Any, active: torch.Tensor | None = None) -> StepOut:
-        """One action step of every env (call :meth:`reset` on finished ones before the next).
+    def step(self, actions: Any, active: torch.Tensor | None = None, auto_reset: bool = False) -> StepOut:
+        """One action step of every env (call :meth:`reset` on finished ones before the next,
+        or pass ``auto_reset``).
 
-        ``active`` (bool ``[N]``, default all): envs whose outcome counts; the others are about
-        to be reset, and their learned cars draw no exploration from the env's generator (as a
-        reference env that is reset instead of stepped).
+        Args:
+            actions: ``[N]`` action indices.
+            active: bool ``[N]`` (default all): envs whose outcome counts; the others are about
+                to be reset, and their learned cars draw no exploration from the env's
+                generator (as a reference env that is reset instead of stepped).
+            auto_reset: reset the envs that this step finishes, as :meth:`reset` would right
+                after the step (same scenes), drawing their first frames in the same call as
+                every env's new frame; the finished episodes' last observations are in
+                ``StepOut.final_observation`` (rows ``StepOut.reset_ids``), and
+                :meth:`observation` gives the new episodes' first.
         """
         a = check_actions(actions, self.num_envs, self.device)
         # Learned cars look before anyone moves; a view shows positions and headings (and the
@@ -223,22 +275,42 @@ class BatchedLaneChange:
         else:
             car_actions = torch.full(self.present.shape, IDLE, dtype=torch.long, device=self.device)
         car_actions[:, 0] = a
-        self._apply(car_actions)
-        self._move()
-        self.steps += 1
-        self.crashed |= self._agent_collides()
-        lo, hi = self._lateral_extent(self.state[:, 0])
-        w = self.cfg.lane_width
-        self.crashed |= (lo < -0.5 * w) | (hi > (self.cfg.lanes_count - 0.5) * w)
-        self.reached |= self._inside_target(lo, hi, self.target_lane)
+        cfg, w, b = self.cfg, self.cfg.lane_width, self._arrays  # numpy views on CPU, else the tensors
+        acts = car_actions.numpy() if self._on_cpu else car_actions
+        low, high = cfg.speed_limits
+        physics.apply_actions(b["state"], b["ds"][acts], b["dk"][acts], (low, high), cfg.curvature_limit)
+        physics.move(b["state"], cfg.dt)
+        b["steps"] += 1
+        hit = self._agent_collides()
+        b["crashed"] |= hit.numpy() if self._on_cpu else hit
+        lo, hi = physics.lateral_extent(b["state"][:, 0], cfg.vehicle_length, cfg.vehicle_width)
+        b["crashed"] |= (lo < -0.5 * w) | (hi > (cfg.lanes_count - 0.5) * w)
+        b["reached"] |= physics.inside_target(lo, hi, b["target_lane"], w)
         self._head = (self._head + 1) % self.frame_stack
-        self._render_agents(None, into=self._head)
-        comps, on_target = self._components()
-        reward = torch.zeros(self.num_envs, dtype=torch.float64, device=self.device)
-        for i, weight in enumerate(self._weights):  # the reference's order of summation
-            reward = reward + weight * comps[:, i].to(torch.float64)
-        return StepOut(reward, comps, self.crashed.clone(), self.steps >= self.cfg.duration,
-                       self.crashed.clone(), on_target, self.reached.clone())
+        comps, on_target = self._components(b)
+        reward = physics.weighted_sum(comps, self._weights)
+        crashed, reached = b["crashed"], b["reached"]
+        parts = (reward, comps, crashed, b["steps"] >= cfg.duration, crashed, on_target, reached)
+        out = StepOut(*(torch.from_numpy(x.copy()) if self._on_cpu else x.clone() for x in parts))
+        views = self._agent_views(b["state"], b["present"], b["target_lane"], b["is_learned"])
+        done: list[int] = []
+        if auto_reset:
+            ended = parts[2] | parts[3]  # terminated | truncated
+            done = (np.flatnonzero(ended) if self._on_cpu else torch.nonzero(ended).flatten()).tolist()
+        if not done:
+            self._render_into(self._head, views)
+            return out
+        # the finished envs' last frames and their new scenes' first frames in one call: the
+        # new ones land in the scratch pictures that follow the ring's newest slot
+        idx, scenes = self._draw_scenes(done, None)
+        first = self._agent_views(*scenes[:4])
+        cat = np.concatenate if self._on_cpu else torch.cat
+        self._render_into(self._head, tuple(cat([v, f]) for v, f in zip(views, first, strict=True)))
+        out.reset_ids = idx
+        out.final_observation = self.observation(idx)
+        self._install(idx, scenes)
+        self._first_frames(idx, self._scratch[self._head, : len(done)])
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         """Everything that determines the engine's future (copies; tensors on its device): car
@@ -255,60 +327,39 @@ class BatchedLaneChange:
         """The reference env's ``info`` of the current state, per env: speed [m/s], curvature
         [rad/m], lane, target_lane, rewards (``[N, 5]`` components), collided, on_target_lane,
         reached_target."""
-        comps, on_target = self._components()
-        agent = self.state[:, 0]
-        return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE], "lane": self._lane().long(),
+        comps, on_target = self._components(self._tensors)
+        agent, cfg = self.state[:, 0], self.cfg
+        return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE],
+                "lane": physics.lane(agent, cfg.lane_width, cfg.lanes_count).long(),
                 "target_lane": self.target_lane, "rewards": comps, "collided": self.crashed.clone(),
                 "on_target_lane": on_target, "reached_target": self.reached.clone()}
 
-    def observation(self) -> torch.Tensor:
-        """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor)."""
+    def _components(self, b: dict[str, Any]) -> tuple[Any, Any]:
+        """Reward components and on-target flags of the arrays ``b`` (numpy or tensors)."""
+        cfg = self.cfg
+        return physics.components(b["state"][:, 0], b["crashed"], b["target_lane"], cfg.lane_width,
+                                  cfg.lanes_count, cfg.lane_centre_tolerance, cfg.stopped_speed)
+
+    def observation(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor), of
+        every env or of ``env_ids``."""
         order = [(self._head + k) % self.frame_stack for k in range(1, self.frame_stack + 1)]
-        return torch.stack([self._frames[k] for k in order], dim=1)
+        if env_ids is None:
+            return torch.stack([self._frames[k] for k in order], dim=1)
+        if self._frames_np is not None:
+            picked = self._frames_np[np.array(order)[:, None], env_ids.numpy()[None, :]]  # [S, K, H, W]
+            return torch.from_numpy(np.ascontiguousarray(picked.swapaxes(0, 1)))
+        return torch.stack([self._frames[k].index_select(0, env_ids) for k in order], dim=1)
 
     def newest_frame(self) -> torch.Tensor:
         """The last frame of every env ``[N, H, W]`` (a view of the ring)."""
         return self._frames[self._head]
 
-    def _apply(self, actions: torch.Tensor) -> None:
-        """Add the speed and curvature changes of the actions ``[N, C]`` to every car, clamp, round."""
-        cfg, s = self.cfg, self.state
-        low, high = cfg.speed_limits
-        speed = torch.clamp(s[..., SPEED] + self._ds[actions], float(low), float(high))
-        curv = torch.clamp(s[..., CURVATURE] + self._dk[actions], -cfg.curvature_limit, cfg.curvature_limit)
-        # round away float drift, as the reference does with round(x, 9)
-        s[..., SPEED] = torch.round(speed, decimals=9)
-        s[..., CURVATURE] = torch.round(curv, decimals=9)
-
-    def _move(self) -> None:
-        """Every car drives one ``dt`` along its exact arc (straight below a 1e-9 rad turn)."""
-        s = self.state
-        h, k = s[..., HEADING], s[..., CURVATURE]
-        distance = s[..., SPEED] * self.cfg.dt
-        turn = k * distance
-        straight = turn.abs() < 1e-9
-        radius = 1.0 / torch.where(straight, torch.ones_like(k), k)
-        new_h = h + turn
-        sin_h, cos_h = torch.sin(h), torch.cos(h)
-        dx = torch.where(straight, distance * cos_h, radius * (torch.sin(new_h) - sin_h))
-        dy = torch.where(straight, distance * sin_h, radius * (cos_h - torch.cos(new_h)))
-        s[..., X] += dx
-        s[..., Y] += dy
-        s[..., HEADING] = torch.where(straight, h, new_h)
-
-    def _corners(self, cars: torch.Tensor) -> torch.Tensor:
-        """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (the reference env's formula)."""
+    def _corners(self, cars: Any) -> Any:
+        """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (the reference env's formula;
+        numpy arrays or tensors)."""
         return body_corners(cars[..., X], cars[..., Y], cars[..., HEADING], self.cfg.vehicle_length,
                             self.cfg.vehicle_width)
-
-    def _lateral_extent(self, agent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        y = self._corners(agent)[..., 1]
-        return y.min(-1).values, y.max(-1).values
-
-    def _inside_target(self, lo: torch.Tensor, hi: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        w = self.cfg.lane_width
-        y = target.to(torch.float64) * w
-        return (y - 0.5 * w <= lo) & (hi <= y + 0.5 * w)
 
     def _agent_collides(self) -> torch.Tensor:
         """Agent against every other car: highway-env's separating-axis test on the bodies,
@@ -316,73 +367,63 @@ class BatchedLaneChange:
         agent, others = self.state[:, :1], self.state[:, 1:]
         if others.shape[1] == 0:
             return torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        if self.device.type == "cpu":  # numpy (cheaper calls), the separating-axis test on close pairs
+            state, present = self.state.numpy(), self.present.numpy()
+            # the reference's own pre-check: np.linalg.norm of the centre offsets
+            close = np.linalg.norm(state[:, 1:, :2] - state[:, :1, :2], axis=-1) <= self._diag
+            env_i, car_i = np.nonzero(close & present[:, 1:])
+            hit = np.zeros(self.num_envs, dtype=bool)
+            hit[env_i[self._overlap(state[env_i, 0], state[env_i, car_i + 1])]] = True
+            return torch.from_numpy(hit)
+        # every pair: fixed shapes, no host sync
         close = torch.linalg.vector_norm(others[..., :2] - agent[..., :2], dim=-1) <= self._diag
-        close &= self.present[:, 1:]
-        hit = torch.zeros_like(close)
-        if self.device.type == "cpu":  # the separating-axis test on the close pairs only
-            env_i, car_i = torch.nonzero(close, as_tuple=True)
-            hit[env_i, car_i] = self._overlap(agent[env_i, 0], others[env_i, car_i])
-        else:  # every pair: fixed shapes, no host sync
-            hit = close & self._overlap(agent.expand_as(others), others)
-        return hit.any(-1)
+        return (close & self.present[:, 1:] & self._overlap(agent.expand_as(others), others)).any(-1)
 
-    def _overlap(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
-        """Whether car bodies ``[..., 5]`` overlap: highway-env's ``are_polygons_intersecting``
-        at zero velocity (the 4 edge normals of each body; touching counts)."""
-        a, b = self._corners(first), self._corners(second)  # [..., 4, 2]
-        edges = torch.cat([a.roll(-1, dims=-2) - a, b.roll(-1, dims=-2) - b], dim=-2)  # [..., 8, 2]
-        nx, ny = -edges[..., 1], edges[..., 0]
-        norm = torch.sqrt(nx * nx + ny * ny)
+    def _overlap(self, first: Any, second: Any) -> Any:
+        """Whether car bodies ``[..., 5]`` (numpy arrays or tensors) overlap: highway-env's
+        ``are_polygons_intersecting`` at zero velocity (the 4 edge normals of each body;
+        touching counts)."""
+        xp: Any = np if isinstance(first, np.ndarray) else torch
+        both = self._corners(xp.stack([first, second]))  # [2, ..., 4, 2] (a, b)
+        nxt = [1, 2, 3, 0]  # each corner's next, around the body
+        a, b = both[0], both[1]
+        edges = xp.concatenate([a[..., nxt, :] - a, b[..., nxt, :] - b], -2)  # [..., 8, 2]
+        nx, ny = -edges[..., 1], edges[..., 0]  # [..., 8 edges]
+        norm = xp.sqrt(nx * nx + ny * ny)
         nx, ny = (nx / norm)[..., None], (ny / norm)[..., None]  # [..., 8 axes, 1]
-        pa = a[..., None, :, 0] * nx + a[..., None, :, 1] * ny  # [..., 8 axes, 4 corners]
-        pb = b[..., None, :, 0] * nx + b[..., None, :, 1] * ny
-        min_a, max_a = pa.min(-1).values, pa.max(-1).values
-        min_b, max_b = pb.min(-1).values, pb.max(-1).values
-        gap = torch.where(min_a < min_b, min_b - max_a, min_a - max_b)
+        proj = both[..., None, :, 0] * nx + both[..., None, :, 1] * ny  # [2, ..., 8 axes, 4 corners]
+        low, high = xp.amin(proj, -1), xp.amax(proj, -1)
+        (min_a, min_b), (max_a, max_b) = low, high
+        gap = xp.where(min_a < min_b, min_b - max_a, min_a - max_b)
         return (gap <= 0).all(-1)
 
-    def _lane(self) -> torch.Tensor:
-        """Lane holding the agent's centre (clipped to the road), as float64."""
-        w = self.cfg.lane_width
-        return torch.clamp(torch.floor(self.state[:, 0, Y] / w + 0.5), 0, self.cfg.lanes_count - 1)
-
-    def _components(self) -> tuple[torch.Tensor, torch.Tensor]:
-        cfg, agent = self.cfg, self.state[:, 0]
-        lane = self._lane()
-        offset = agent[:, Y] - lane * cfg.lane_width
-        on_target = lane.long() == self.target_lane
-        comps = torch.stack([self.crashed, offset.abs() <= cfg.lane_centre_tolerance,
-                             agent[:, SPEED] <= cfg.stopped_speed, on_target, ~on_target], dim=-1)
-        return comps, on_target
-
     # --------------------------------------------------------------------------- frames
-    def _render_agents(self, idx: torch.Tensor | None, into: int | None = None) -> torch.Tensor:
-        """The agent's view of envs ``idx`` (None: all) ``[V, H, W]``; ``into``: draw all envs'
-        views straight into that slot of the frame ring."""
-        state = self.state if idx is None else self.state[idx]
-        present = self.present if idx is None else self.present[idx]
-        target = self.target_lane if idx is None else self.target_lane[idx]
-        learned = self.is_learned if idx is None else self.is_learned[idx]
-        labels = torch.where(learned, LABEL["learned"], LABEL["constant"])
+    def _agent_views(self, state: Any, present: Any, target: Any, learned: Any) -> tuple[Any, ...]:
+        """The agents' views (center, target, cars, labels, path) of envs in these states
+        (numpy arrays or tensors)."""
+        where: Any = np.where if isinstance(state, np.ndarray) else torch.where
+        labels = where(learned, LABEL["learned"], LABEL["constant"])
         labels[:, 0] = LABEL["agent"]
-        labels = torch.where(present, labels, -1)
-        path = state[:, 0, [X, Y, HEADING, CURVATURE]]
-        views = (state[:, 0, :2], target, state[..., :3], labels, path)
-        if into is not None:
-            flat = self._ring_np if self._on_numpy(len(state)) else self._ring
-            self.renderer.render_into(flat, into * self._frames[0].numel(), *self._as_backend(views))
-            return self._frames[into]
-        return self._draw(views)
+        labels = where(present, labels, -1)
+        return state[:, 0, :2], target, state[..., :3], labels, state[:, 0, [X, Y, HEADING, CURVATURE]]
+
+    def _render_into(self, slot: int, views: tuple[Any, ...]) -> None:
+        """Draw the views into the ring's ``slot`` (N of them), then its scratch pictures."""
+        flat = self._ring_np if self._on_numpy(len(views[0])) else self._ring
+        self.renderer.render_into(flat, slot * self._slot_size, *self._as_backend(views))
 
     def _on_numpy(self, n_views: int) -> bool:
         """Draw these views with numpy: on CPU, up to a few hundred views numpy's lower cost
         per call wins (same code, same pixels; ``python -m memrl.bench batched`` times it)."""
         return self._ring_np is not None and n_views <= NUMPY_MAX_VIEWS
 
-    def _as_backend(self, views: tuple[torch.Tensor, ...]) -> tuple[Any, ...]:
-        return tuple(v.numpy() for v in views) if self._on_numpy(len(views[0])) else views
+    def _as_backend(self, views: tuple[Any, ...]) -> tuple[Any, ...]:
+        """The views as numpy arrays for the rasterizer's numpy path, else as tensors."""
+        if self._on_numpy(len(views[0])):
+            return tuple(v if isinstance(v, np.ndarray) else v.numpy() for v in views)
+        return tuple(torch.as_tensor(v, device=self.device) for v in views)
 
-    def _draw(self, views: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    def _draw(self, views: tuple[Any, ...]) -> torch.Tensor:
         """Pictures ``[V, H, W]`` of the views (center, target, cars, labels, path) as a tensor."""
         img = self.renderer.render_batch(*self._as_backend(views))
         return torch.from_numpy(img) if isinstance(img, np.ndarray) else img

@@ -74,11 +74,12 @@ class _Ops:
     maximum: Any
     cos: Any
     sin: Any
+    amax: Any
 
     def __init__(self, xp: Any) -> None:
         self.is_torch = xp is torch
         self.inf = np.float32(np.inf) if not self.is_torch else torch.tensor(np.inf, dtype=torch.float32)
-        for name in ("ceil", "floor", "where", "minimum", "maximum", "cos", "sin"):
+        for name in ("ceil", "floor", "where", "minimum", "maximum", "cos", "sin", "amax"):
             setattr(self, name, getattr(xp, name))
 
     def f32(self, x: Any) -> Any:
@@ -108,6 +109,16 @@ class _Ops:
             a.index_put_(index, torch.full_like(index[0], value, dtype=a.dtype), accumulate=True)
         else:
             np.add.at(a, index, value)
+
+    def slot_major(self, x: Any) -> Any:
+        """``x`` with its first two axes swapped, laid out contiguously."""
+        return x.transpose(0, 1).contiguous() if self.is_torch else np.ascontiguousarray(x.swapaxes(0, 1))
+
+    def take_rows(self, source: Any, index: Any, out: Any) -> None:
+        """``out[i] = source[index[i]]`` for rows, written straight into ``out``."""
+        if not self.is_torch:  # torch's row gather beats np.take: run it on the same memory
+            source, index, out = torch.from_numpy(source), torch.from_numpy(index), torch.from_numpy(out)
+        torch.index_select(source, 0, index, out=out)
 
     def zeros(self, shape: tuple[int, ...], like: Any) -> Any:
         if self.is_torch:
@@ -217,6 +228,7 @@ class BEVRenderer:
         self._half_span = 0.5 * h * view.longitudinal_scale  # [m] shown ahead and behind
         line = max(view.lateral_scale, 0.15)
         step = 0.5 * min(view.lateral_scale, view.longitudinal_scale)
+        left, right = -0.5 * lane_width, (lanes_count - 0.5) * lane_width
         consts = {
             "table": table,
             "labels": np.arange(len(LABELS), dtype=np.uint8),
@@ -224,6 +236,9 @@ class BEVRenderer:
             "cols": np.arange(max(w, self._win_cols), dtype=np.int64),
             "rows": np.arange(h, dtype=np.int64)[None, :],
             "dividers": (np.arange(1, lanes_count) - 0.5) * lane_width,
+            # world bands across the road [m]: the road, its left and right edge markings
+            "road_bands": np.array([left, right, left, left + line, right - line, right]),
+            "lane_half": np.array([-0.5 * lane_width, 0.5 * lane_width]),
             # columns per divider band
             "div_k": np.arange(math.ceil(line / view.lateral_scale) + 1, dtype=np.float64),
             # dashes that can show in a crop: 2 * half_span of road plus a period on each side
@@ -285,22 +300,24 @@ class BEVRenderer:
             """The first column whose centre lies at or beyond world y across the road."""
             return x_.ceil(0.5 * v.width + (y - cy) / v.lateral_scale - 0.5)
 
-        def band(y0: Any, y1: Any) -> Any:
-            """[V, W]: columns whose centres lie in the world band [y0, y1) across the road."""
-            return (j >= edges(y0)) & (j < edges(y1))
+        def bands(y: Any) -> Any:
+            """[V, B, W]: columns whose centres lie in the world bands [y[2b], y[2b + 1]) across
+            the road, for bounds ``y`` [B * 2] or [V, B * 2]."""
+            e = edges(y)
+            return (j >= e[:, 0::2, None]) & (j < e[:, 1::2, None])
 
-        left, right = -0.5 * w, (n - 0.5) * w
-        col = x_.where(band(left, right), values[LABEL["road"]], values[LABEL["offroad"]])
+        # the road, then its two edge markings
+        road = bands(k["road_bands"])  # [V, 3, W]
+        col = x_.where(road[:, 0], values[LABEL["road"]], values[LABEL["offroad"]])
         if self.show_target_lane:
-            t = (x_.f64(target_lane) * w)[:, None]
-            col = x_.where(band(t - 0.5 * w, t + 0.5 * w) & (target_lane[:, None] >= 0),
-                           values[LABEL["target_lane"]], col)
+            t = (x_.f64(target_lane) * w)[:, None] + k["lane_half"]  # [V, 2] the lane's bounds
+            col = x_.where(bands(t)[:, 0] & (target_lane[:, None] >= 0), values[LABEL["target_lane"]], col)
+        col = x_.where(road[:, 1] | road[:, 2], values[LABEL["marking"]], col)
         line = max(v.lateral_scale, 0.15)  # markings: at least 1 px, at most 0.15 m wide
-        col = x_.where(band(left, left + line) | band(right - line, right), values[LABEL["marking"]], col)
         n_views = len(center)
         pictures = flat[start: start + n_views * v.height * v.width].reshape(n_views, v.height, v.width)
-        pictures[:] = col[:, None, :]
         if n < 2:
+            pictures[:] = col[:, None, :]
             return
         # dash k covers [s_k, s_k + L] along the road, s_k = first + k * period: rows [r0, r1)
         period = 2.0 * self.dash_length
@@ -313,18 +330,23 @@ class BEVRenderer:
         r0, r1 = x_.i64(x_.clip(r0, 0, v.height)), x_.i64(x_.clip(r1, 0, v.height))
         # +1 where a dash starts, -1 where it ends, summed down the picture
         count = x_.zeros((n_views, v.height + 1), like=r0)
-        views = x_.arange(n_views, self.device)[:, None] + r0 * 0
-        x_.add_at(count, (views, r0), 1)
-        x_.add_at(count, (views, r1), -1)
+        views = x_.arange(n_views, self.device)[:, None]
+        x_.add_at(count, (views + r0 * 0, r0), 1)
+        x_.add_at(count, (views + r0 * 0, r1), -1)
         dash = x_.cumsum(count[:, :-1], axis=1) > 0  # [V, H]
         # the divider columns: those of the bands [yd - line/2, yd + line/2), at most a few each
         yd = k["dividers"] - 0.5 * line  # [D]
         a, b = edges(yd), edges(yd + line)  # [V, D]
         cols = x_.i64(a[..., None] + k["div_k"])  # [V, D, k]
         ok = (cols < b[..., None]) & (cols >= 0) & (cols < v.width)
-        cols, ok = cols.reshape(n_views, 1, -1), ok.reshape(n_views, 1, -1)
-        pixel = base[:, None, None] + k["rows"][:, :, None] * v.width + cols  # [V, H, D * k]
-        flat[x_.where(dash[..., None] & ok, pixel, flat.shape[0] - 1)] = values[LABEL["marking"]]
+        # two rows per view, [plain, dashed] (+ a spare column for the columns not drawn), and
+        # every picture row copied from one of them in one gather
+        rows = x_.zeros((n_views, 2, v.width + 1), like=col)
+        rows[:, :, : v.width] = col[:, None, :]
+        dashed = x_.where(ok, cols, v.width).reshape(n_views, -1) + (2 * views + 1) * (v.width + 1)
+        rows.reshape(-1)[dashed.reshape(-1)] = values[LABEL["marking"]]
+        source = rows[:, :, : v.width].reshape(2 * n_views, v.width)
+        x_.take_rows(source, (2 * views + dash).reshape(-1), pictures.reshape(-1, v.width))
 
     def _paint_cars(self, x_: _Ops, flat: Any, base: Any, center: Any, cars: Any, car_label: Any,
                     values: Any) -> None:
@@ -333,7 +355,10 @@ class BEVRenderer:
         v, k = self.view, self._consts[x_]
         if car_label.shape[1] == 0:
             return
-        rel = x_.f32(cars[..., :2] - center[:, None, :])  # [V, C, 2] car from view centre [m]
+        # slot-major [C, V, ...]: each slot's pixels lie together for its own write below
+        cars, car_label = x_.slot_major(cars), x_.slot_major(car_label)
+        base = base[:, None]  # [V, 1] against [C, V, R]
+        rel = x_.f32(cars[..., :2] - center[None, :, :])  # [C, V, 2] car from view centre [m]
         cos, sin = x_.f32(x_.cos(cars[..., 2])), x_.f32(x_.sin(cars[..., 2]))
         half_len, half_wid = 0.5 * self.car_length, 0.5 * self.car_width
         # rows whose centres lie within the body's extent along the road
@@ -345,7 +370,7 @@ class BEVRenderer:
         n_rows = int((last - first).max()) + 1 if dynamic else self._win_rows
         if n_rows <= 0:
             return
-        row = first[..., None] + k["win_i"][:n_rows]  # [V, C, R]
+        row = first[..., None] + k["win_i"][:n_rows]  # [C, V, R]
         dx = (0.5 * v.height - 0.5 - row) * v.longitudinal_scale - rel[..., 0, None]  # row centre - car [m]
         c, s = cos[..., None], sin[..., None]
         # |dx c + dy s| <= L/2 and |dy c - dx s| <= W/2, solved for dy on each row
@@ -365,16 +390,20 @@ class BEVRenderer:
         j0 = x_.clip(x_.ceil(col0 + lo / v.lateral_scale), 0, v.width)  # finite, and empty stays empty
         j1 = x_.clip(x_.floor(col0 + hi / v.lateral_scale), -1, v.width - 1)
         valid = (row <= last[..., None]) & (row >= 0) & (row < v.height) & (car_label >= 0)[..., None]
-        run = x_.where(valid, x_.i64(j1 - j0), -1)  # [V, C, R] columns after the first (-1: none)
-        n_cols = int(run.max()) + 1 if dynamic else self._win_cols
-        if n_cols <= 0:
-            return
-        start = base[:, None, None] + x_.clip(x_.i64(row) * v.width + x_.i64(j0), 0, None)  # [V, C, R]
-        q = k["cols"][:n_cols]
-        index = x_.where(q <= run[..., None], start[..., None] + q, flat.shape[0] - 1)  # [V, C, R, Q]
-        shade = values[x_.clip(car_label, 0, None)]  # [V, C]
-        for slot in range(car_label.shape[1]):  # in draw order; one car covers a pixel once
-            flat[index[:, slot].reshape(-1)] = x_.repeat(shade[:, slot], n_rows * n_cols)
+        run = x_.where(valid, x_.i64(j1 - j0), -1)  # [C, V, R] columns after the first (-1: none)
+        # rows with no pixel write to the spare element; the window's columns past a row's run
+        # repeat the run's last pixel (the same car, the same shade: written twice, no harm)
+        start = x_.where(run >= 0, base + x_.i64(row) * v.width + x_.i64(j0), flat.shape[0] - 1)
+        shade = values[x_.clip(car_label, 0, None)]  # [C, V]
+        # a window as wide as the slot's widest run (on CPU; else fixed: no host sync)
+        widths = ([int(r) + 1 for r in x_.amax(run.reshape(len(run), -1), 1).tolist()] if dynamic
+                  else [self._win_cols] * len(run))
+        run = x_.clip(run, 0, None)
+        for slot, width in enumerate(widths):  # in draw order; one car covers a pixel once
+            if width <= 0:
+                continue
+            index = start[slot][..., None] + x_.minimum(k["cols"][:width], run[slot][..., None])  # [V, R, Q]
+            flat[index.reshape(-1)] = x_.repeat(shade[slot], n_rows * width)
 
     # ---------------------------------------------------------------- one view (reference env)
     def render(

@@ -64,7 +64,8 @@ def sample_scene(cfg: LaneChangeConfig, rng: np.random.Generator, pool_size: int
     target = int(rng.integers(n)) if cfg.target_lane == "random" else int(cfg.target_lane)
     others = [lane for lane in range(n) if lane != target]
     start_on_target = cfg.initial_lane == "random" and rng.random() < 0.5
-    lane = target if start_on_target else int(rng.choice(others))
+    # others[integers(len)] is exactly Generator.choice(others) (the same draw), without its overhead
+    lane = target if start_on_target else others[int(rng.integers(len(others)))]
     low, high = cfg.initial_speed
     agent = np.array([AGENT_X, lane * cfg.lane_width, 0.0, float(rng.uniform(low, high)), 0.0])
     # Drawn only when enabled, so the episodes of a seed stay the same without them.
@@ -111,19 +112,25 @@ def _spawn_others(cfg: LaneChangeConfig, rng: np.random.Generator, agent_lane: i
             x = float(uniform(low, high))
             if lane == agent_lane and abs(x - x0) < agent_gap:
                 continue
-            if any(abs(x - px) < min_gap for px in by_lane[lane]):
-                continue
-            by_lane[lane].append(x)
-            placed += 1
-            break
+            taken = by_lane[lane]
+            for px in taken:  # a plain loop: cheaper than any() over a generator
+                if abs(x - px) < min_gap:
+                    break
+            else:
+                taken.append(x)
+                placed += 1
+                break
     low, high = cfg.other_speed
-    speeds = rng.uniform(low, high, size=placed)
-    rows: list[list[float]] = []
-    for lane in range(lanes):
-        xs = sorted(by_lane[lane])
-        lane_speeds = sorted(speeds[len(rows): len(rows) + len(xs)])
-        rows += [[x, lane * cfg.lane_width, 0.0, float(v), 0.0] for x, v in zip(xs, lane_speeds, strict=True)]
-    return np.array(rows, dtype=np.float64).reshape(-1, len(STATE))
+    speeds = rng.uniform(low, high, size=placed).tolist()
+    rows = np.zeros((placed, len(STATE)))
+    row = 0
+    for lane, xs in enumerate(by_lane):
+        xs.sort()
+        rows[row: row + len(xs), 0] = xs
+        rows[row: row + len(xs), 1] = lane * cfg.lane_width
+        rows[row: row + len(xs), 3] = sorted(speeds[row: row + len(xs)])
+        row += len(xs)
+    return rows
 
 
 def max_cars(cfg: LaneChangeConfig) -> int:
