@@ -3,16 +3,21 @@
 A :class:`DrivingPolicy` picks one of the 9 actions each step from the env's world state
 and/or the agent's stacked pixels. :class:`PolicyModule` runs any of them inside a TorchRL
 rollout or collector (it reads the world state through the env it was given).
+:class:`GreedyPolicy` is the trained agent (argmax Q) and :class:`FrameStack` the stacked
+pixels of a plain gym env: one of each, shared by evaluation, stage-1 drives, recording and
+the deploy baseline.
 """
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 
 import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch import nn
 
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
@@ -27,6 +32,70 @@ class DrivingPolicy(ABC):
     @abstractmethod
     def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
         """Action index in [0, 9) for the current step; ``pixels`` is uint8 ``[4, H, W]``."""
+
+
+class StopRecording(Exception):  # noqa: N818 - a request, not an error
+    """Raised by a policy (e.g. the human pressing Esc) to end a recording or an evaluation
+    early; the episode under way is dropped and the finished ones are kept."""
+
+
+class FrameStack:
+    """The last ``n`` frames along the channel axis, padded with the first frame after a reset.
+
+    What TorchRL's ``CatFrames(padding="same")`` and the batched engine's frame ring give, for
+    a plain gym env stepped by hand (``tests/test_evaluate.py`` checks the equality).
+    """
+
+    # Hand-written: mirrors TorchRL's CatFrames (padding="same") on plain numpy arrays.
+    def __init__(self, n: int = 4) -> None:
+        self.n = n
+        self.frames: np.ndarray | None = None
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        """Start a stack from the reset observation ``[C, H, W]``; returns ``[n * C, H, W]``."""
+        self.frames = np.repeat(obs, self.n, axis=0)
+        return self.frames
+
+    def push(self, obs: np.ndarray) -> np.ndarray:
+        """Drop the oldest frame, append ``obs``; returns the stack."""
+        assert self.frames is not None, "FrameStack.push before reset"
+        self.frames = np.concatenate([self.frames[obs.shape[0]:], obs])
+        return self.frames
+
+
+class GreedyPolicy(DrivingPolicy):
+    """argmax Q of a Q-network (the trained agent), for one stack or a whole batch at once.
+
+    The network is a copy (the one given is left as it is) in channels-last memory format:
+    about 2x faster on CPU (oneDNN), the same Q-values (tested against the plain network).
+
+    Args:
+        net: a Q-network taking uint8 ``[B, frames, H, W]``.
+        device: where the copy runs (``to`` moves it later).
+    """
+
+    def __init__(self, net: nn.Module, device: torch.device | str = "cpu") -> None:
+        self.net = copy.deepcopy(net).eval()
+        self.to(device)
+
+    def to(self, device: torch.device | str) -> GreedyPolicy:
+        """Move the network to ``device``; returns self."""
+        self.device = torch.device(device)
+        self.net.to(device=self.device, memory_format=torch.channels_last)  # type: ignore[call-overload]
+        return self
+
+    @torch.inference_mode()
+    def q_values(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Q-values ``[B, actions]`` of uint8 stacks ``[B, frames, H, W]`` (moved to the device)."""
+        x = pixels.to(self.device, non_blocking=True).contiguous(memory_format=torch.channels_last)
+        return self.net(x)
+
+    def act_batch(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Greedy actions (int64 ``[B]``, on the device) of a batch of stacks."""
+        return self.q_values(pixels).argmax(-1)
+
+    def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
+        return int(self.act_batch(torch.from_numpy(np.ascontiguousarray(pixels))[None])[0])
 
 
 class RandomPolicy(DrivingPolicy):
