@@ -126,3 +126,18 @@ def test_frame_stack_repeats_the_first_frame_and_drops_the_oldest():
     for k in range(1, 5):
         stack.push(frames[k])
     assert stack.frames is not None and stack.frames[:, 0, 0].tolist() == [2, 3, 4]
+
+
+def test_bench_eval_times_both_runners_on_the_same_episodes(compose_cfg, tmp_path):
+    from memrl.bench import bench
+
+    cfg = compose_cfg("bench", ["benchmarks=[eval]", "eval.episodes=3", "eval.duration=20",
+                                "eval.idle_bias=[0,40]"])
+    res = bench(cfg, tmp_path)["eval"]
+    assert res["episodes"] == 6 and res["threads"] == 1 and res["device"] == "cpu"
+    for name in ("fresh_qnet", "fresh_qnet_idle_bias_40"):
+        row = res[name]
+        assert row["same_records"] is True
+        assert row["today_runner"]["env_steps"] == row["engine_runner"]["env_steps"]
+        assert row["ratio"] == pytest.approx(row["today_runner"]["wall_s"] / row["engine_runner"]["wall_s"])
+        assert row["engine_runner"]["forward_samples"] == row["engine_runner"]["env_steps"]
