@@ -116,6 +116,9 @@ def test_greedy_policy_is_one_policy_for_one_stack_and_for_a_batch():
     batch = policy.act_batch(pixels)
     assert [policy.act(None, p.numpy()) for p in pixels] == batch.tolist()  # type: ignore[arg-type]
     assert torch.equal(batch, net(pixels).argmax(-1))
+    chunked = GreedyPolicy(net, cpu_chunk=4).q_values(pixels)  # chunks, strided-maximum pools
+    assert torch.allclose(chunked, net(pixels), atol=1e-5, rtol=0)
+    assert torch.allclose(GreedyPolicy(net, cpu_chunk=None).q_values(pixels), net(pixels), atol=1e-5, rtol=0)
     assert next(net.parameters()).is_contiguous()  # the network given is left as it was
 
 

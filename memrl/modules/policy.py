@@ -21,6 +21,7 @@ from torch import nn
 
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
+from memrl.modules.qnet import QNetwork
 
 
 class DrivingPolicy(ABC):
@@ -68,14 +69,18 @@ class GreedyPolicy(DrivingPolicy):
 
     The network is a copy (the one given is left as it is) in channels-last memory format:
     about 2x faster on CPU (oneDNN), the same Q-values (tested against the plain network).
+    On CPU a large batch goes through in chunks: its activations then stay in the caches
+    (``python -m memrl.bench eval``: about 2.5x faster per sample at 32 than at 200).
 
     Args:
         net: a Q-network taking uint8 ``[B, frames, H, W]``.
         device: where the copy runs (``to`` moves it later).
+        cpu_chunk: samples per forward pass on CPU (None: the whole batch at once).
     """
 
-    def __init__(self, net: nn.Module, device: torch.device | str = "cpu") -> None:
+    def __init__(self, net: nn.Module, device: torch.device | str = "cpu", cpu_chunk: int | None = 32) -> None:
         self.net = copy.deepcopy(net).eval()
+        self.cpu_chunk = cpu_chunk
         self.to(device)
 
     def to(self, device: torch.device | str) -> GreedyPolicy:
@@ -87,8 +92,24 @@ class GreedyPolicy(DrivingPolicy):
     @torch.inference_mode()
     def q_values(self, pixels: torch.Tensor) -> torch.Tensor:
         """Q-values ``[B, actions]`` of uint8 stacks ``[B, frames, H, W]`` (moved to the device)."""
-        x = pixels.to(self.device, non_blocking=True).contiguous(memory_format=torch.channels_last)
-        return self.net(x)
+        x = pixels.to(self.device, non_blocking=True)
+        chunk = self.cpu_chunk if self.device.type == "cpu" and self.cpu_chunk else len(x)
+        if len(x) <= chunk:
+            return self._forward(x.contiguous(memory_format=torch.channels_last))
+        return torch.cat([self._forward(part.contiguous(memory_format=torch.channels_last))
+                          for part in x.split(chunk)])
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The network's forward; a Table I network's 2x2 max-pools as strided maxima (the
+        same values; nn.MaxPool2d on channels-last CPU tensors is about a third of the pass)."""
+        net = self.net
+        if not isinstance(net, QNetwork) or net.conv_dtype is not None or x.device.type != "cpu":
+            return net(x)
+        batch = x.shape[:-3]
+        h = x.reshape(-1, *x.shape[-3:]).to(torch.float32).div_(255.0)  # as QNetwork.forward
+        for layer in net.features:
+            h = max_pool_2x2(h) if _plain_2x2_pool(layer) else layer(h)
+        return net.head(h).reshape(*batch, -1)
 
     def act_batch(self, pixels: torch.Tensor) -> torch.Tensor:
         """Greedy actions (int64 ``[B]``, on the device) of a batch of stacks."""
@@ -96,6 +117,21 @@ class GreedyPolicy(DrivingPolicy):
 
     def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
         return int(self.act_batch(torch.from_numpy(np.ascontiguousarray(pixels))[None])[0])
+
+
+def _plain_2x2_pool(layer: nn.Module) -> bool:
+    return (isinstance(layer, nn.MaxPool2d) and layer.kernel_size in (2, (2, 2))
+            and layer.stride in (2, (2, 2)) and layer.padding in (0, (0, 0))
+            and layer.dilation in (1, (1, 1)) and not layer.ceil_mode)
+
+
+def max_pool_2x2(x: torch.Tensor) -> torch.Tensor:
+    """``F.max_pool2d(x, 2)`` (odd sizes floored) as the maximum of the four strided views."""
+    # Hand-written: the same maxima as torch's max_pool2d, about 2x faster on channels-last CPU tensors.
+    h, w = x.shape[-2] // 2 * 2, x.shape[-1] // 2 * 2
+    x = x[..., :h, :w]
+    return torch.maximum(torch.maximum(x[..., 0::2, 0::2], x[..., 0::2, 1::2]),
+                         torch.maximum(x[..., 1::2, 0::2], x[..., 1::2, 1::2]))
 
 
 class RandomPolicy(DrivingPolicy):
