@@ -144,3 +144,23 @@ def test_bench_eval_times_both_runners_on_the_same_episodes(compose_cfg, tmp_pat
         assert row["today_runner"]["env_steps"] == row["engine_runner"]["env_steps"]
         assert row["ratio"] == pytest.approx(row["today_runner"]["wall_s"] / row["engine_runner"]["wall_s"])
         assert row["engine_runner"]["forward_samples"] == row["engine_runner"]["env_steps"]
+
+
+def test_recording_and_the_deploy_baseline_drive_the_greedy_policy_as_the_evaluation_does():
+    """One greedy policy and one frame stack: the recorder's direct drive and the deploy
+    baseline's simulator episodes end as the evaluation's records of the same scenes."""
+    from memrl.control.baseline import simulator_episode
+    from memrl.data.recording import drive_episodes
+    from memrl.envs.lane_change import LaneChangeEnv
+
+    net = qnet(2, 40.0)
+    env_cfg = {"duration": 40, "vehicles_count": [0, 4], "initial_lane": "non_goal"}
+    seeds = [11, 12, 13, 14]
+    recs = run_jobs(GreedyActor(net), [Job(env_cfg, "non_goal", list(enumerate(seeds)))]).records
+    stats = drive_episodes(env_cfg, GreedyPolicy(net), seeds)
+    assert [(s.steps, s.episode_return, s.collided, s.reached_target) for s in stats] == \
+        [(r.steps, r.episode_return, r.collided, r.reached_target) for r in recs]
+    env = LaneChangeEnv(config=env_cfg)
+    runs = [simulator_episode(env, GreedyPolicy(net), s) for s in seeds]
+    assert [(r["collided"], r["reached_target"]) for r in runs] == \
+        [(r.collided, r.reached_target) for r in recs]

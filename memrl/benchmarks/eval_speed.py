@@ -94,7 +94,8 @@ def run(episodes: int = 100, duration: int = 300, vehicles_count: Sequence[int] 
     seeds = list(enumerate(scenario_seeds(seed, episodes)))
     jobs = [Job(protocol_env({}, protocol, lane), lane, seeds) for lane in protocol.initial_lanes]
     res: dict[str, Any] = {"device": str(dev), "threads": threads, "episodes": episodes * len(jobs),
-                           "protocol": {"episodes_per_lane": episodes, "initial_lanes": protocol.initial_lanes,
+                           "protocol": {"episodes_per_lane": episodes,
+                                        "initial_lanes": protocol.initial_lanes,
                                         "vehicles_count": list(vehicles_count), "duration": duration},
                            "today_runner": f"gym envs, 1 worker, batch {gym_batch}",
                            "engine_runner": f"batched engine, {engine_batch or 'all'} envs per lane"}

@@ -78,7 +78,8 @@ class GreedyPolicy(DrivingPolicy):
         cpu_chunk: samples per forward pass on CPU (None: the whole batch at once).
     """
 
-    def __init__(self, net: nn.Module, device: torch.device | str = "cpu", cpu_chunk: int | None = 32) -> None:
+    def __init__(self, net: nn.Module, device: torch.device | str = "cpu",
+                 cpu_chunk: int | None = 32) -> None:
         self.net = copy.deepcopy(net).eval()
         self.cpu_chunk = cpu_chunk
         self.to(device)
