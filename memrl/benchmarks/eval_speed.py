@@ -56,7 +56,7 @@ def fresh_qnet(seed: int, idle_bias: float = 0.0) -> QNetwork:
     torch.manual_seed(seed)
     net = QNetwork()
     with torch.no_grad():
-        net.head[-1].bias[IDLE] += idle_bias
+        net.head[-1].bias[IDLE] += idle_bias  # type: ignore[index,operator]
     return net
 
 
