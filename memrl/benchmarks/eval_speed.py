@@ -27,10 +27,18 @@ from memrl.modules.qnet import QNetwork
 
 
 class TimedGreedyActor(GreedyActor):
-    """A greedy actor that adds up the wall time of its forward passes [s]."""
+    """A greedy actor that adds up the wall time of its forward passes [s].
 
-    def __init__(self, net: QNetwork) -> None:
+    Args:
+        net: the Q-network.
+        todays_forward: on the gym path, act as the runner's actor did before the engine
+            runner (the whole channels-last network on each lockstep batch), not through
+            :class:`~memrl.modules.policy.GreedyPolicy` (chunks, strided-maximum pools).
+    """
+
+    def __init__(self, net: QNetwork, todays_forward: bool = False) -> None:
         super().__init__(net)
+        self.todays_forward = todays_forward
         self.seconds = 0.0
         self.samples = 0
 
@@ -45,7 +53,12 @@ class TimedGreedyActor(GreedyActor):
 
     def act(self, slots: Sequence[int], envs: Sequence[Any], pixels: np.ndarray) -> np.ndarray:
         start = time.perf_counter()
-        out = super().act(slots, envs, pixels)
+        if self.todays_forward:
+            with torch.inference_mode():
+                x = torch.from_numpy(pixels).contiguous(memory_format=torch.channels_last)
+                out = self.net(x).argmax(-1).numpy()
+        else:
+            out = super().act(slots, envs, pixels)
         self.seconds += time.perf_counter() - start
         self.samples += len(pixels)
         return out
@@ -62,7 +75,7 @@ def fresh_qnet(seed: int, idle_bias: float = 0.0) -> QNetwork:
 
 def _time(net: QNetwork, jobs: list[Job], engine: bool, gym_batch: int, engine_batch: int | None,
           device: torch.device, threads: int) -> tuple[dict[str, Any], list[Any]]:
-    actor = TimedGreedyActor(net)
+    actor = TimedGreedyActor(net, todays_forward=not engine)
     start = time.perf_counter()
     with torch_threads(threads):
         res = run_jobs(actor, jobs, workers=threads, batch=gym_batch, engine=engine, device=device,
