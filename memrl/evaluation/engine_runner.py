@@ -13,8 +13,7 @@ the engine is the reference env step for step (``tests/test_batched.py``).
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -23,7 +22,7 @@ from memrl.envs.batched import BatchedLaneChange, resolve_device
 from memrl.envs.config import env_config_dict, validate_env_config
 from memrl.envs.vehicles import IDLE
 from memrl.evaluation.protocol import EpisodeRecord
-from memrl.evaluation.runner import Actor, Job, JobResult
+from memrl.evaluation.runner import Actor, Job, JobResult, torch_threads
 
 __all__ = ["engine_can_run", "resolve_device", "run_jobs_on_engine", "torch_threads"]
 
@@ -33,17 +32,6 @@ def engine_can_run(job: Job) -> bool:
     step (``frame_stack: 1``; the runners stack them), as the evaluation's env configs have."""
     cfg = validate_env_config({**env_config_dict(), **dict(job.env)})
     return bool(cfg.bev.grayscale) and cfg.frame_stack == 1
-
-
-@contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """torch on ``n`` CPU threads for the block (the previous count restored after)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 @dataclass

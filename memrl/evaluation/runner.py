@@ -21,7 +21,7 @@ import multiprocessing as mp
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +33,7 @@ from memrl.envs.lane_change import LaneChangeEnv
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
 from memrl.modules.policy import FrameStack, StopRecording
 
-__all__ = ["Actor", "FrameStack", "Job", "JobResult", "run_job", "run_jobs", "split"]
+__all__ = ["Actor", "FrameStack", "Job", "JobResult", "run_job", "run_jobs", "split", "torch_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -103,15 +103,20 @@ class _Slot:
 
 
 @contextmanager
-def one_thread() -> Iterator[None]:
-    """torch on one thread for the block: one process per core is the parallelism here, and
-    torch's OpenMP threads slow down by 10x and more when the cores are busy (spin-waiting)."""
+def torch_threads(n: int) -> Iterator[None]:
+    """torch on ``n`` CPU threads for the block (the previous count restored after)."""
     before = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(n)
     try:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def one_thread() -> AbstractContextManager[None]:
+    """torch on one thread for the block: one process per core is the parallelism here, and
+    torch's OpenMP threads slow down by 10x and more when the cores are busy (spin-waiting)."""
+    return torch_threads(1)
 
 
 def run_job(actor: Actor, job: Job, batch: int = 8, frame_stack: int = 4,
