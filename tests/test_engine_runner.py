@@ -164,3 +164,19 @@ def test_recording_and_the_deploy_baseline_drive_the_greedy_policy_as_the_evalua
     runs = [simulator_episode(env, GreedyPolicy(net), s) for s in seeds]
     assert [(r["collided"], r["reached_target"]) for r in runs] == \
         [(r.collided, r.reached_target) for r in recs]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message without CUDA")
+def test_cuda_without_cuda_is_one_clear_error():
+    from memrl.envs.batched import BatchedEnvError
+
+    with pytest.raises(BatchedEnvError, match="CUDA is not available"):
+        run_jobs(GreedyActor(qnet(0)), protocol_jobs(2, 10), device="cuda")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_engine_on_cuda_gives_the_gym_runner_records(pool):
+    jobs = protocol_jobs(6, 40, opponent={"type": "mixed", "pool": pool}, vehicles_count=[0, 5])
+    actor = GreedyActor(qnet(2, 40.0))
+    gym = run_jobs(actor, jobs, engine=False).records
+    assert run_jobs(actor, jobs, device="cuda").records == gym

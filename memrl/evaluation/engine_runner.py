@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 
 import torch
 
@@ -34,24 +33,22 @@ def engine_can_run(job: Job) -> bool:
     return bool(cfg.bev.grayscale) and cfg.frame_stack == 1
 
 
-@dataclass
 class _Lane:
-    """One job on its own engine: which episode each env is driving."""
+    """One job on its own engine of up to ``batch`` envs: which episode each env drives."""
 
-    job: Job
-    engine: BatchedLaneChange
-    queue: deque[tuple[int, int]]
-    index: list[int] = field(default_factory=list)
-    """Episode index per env (-1: idle, the queue ran out)."""
-    seed: list[int] = field(default_factory=list)
-    start_lane: list[int] = field(default_factory=list)
-    target_lane: list[int] = field(default_factory=list)
-    vehicles: list[int] = field(default_factory=list)
-    ret: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
-    """Return so far per env (float64, summed step by step like the gym path)."""
-    steps: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
-    active: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
-    """Envs driving an episode that counts."""
+    def __init__(self, job: Job, batch: int | None, device: torch.device, frame_stack: int) -> None:
+        n = min(batch or len(job.episodes), len(job.episodes))
+        self.job, self.queue = job, deque(job.episodes)
+        self.engine = BatchedLaneChange(job.env, n, device, frame_stack)
+        self.index, self.seed = [-1] * n, [0] * n
+        """Episode index (-1: idle, the queue ran out) and reset seed per env."""
+        self.start_lane, self.target_lane, self.vehicles = [-1] * n, [-1] * n, [-1] * n
+        self.ret = torch.zeros(n, dtype=torch.float64, device=device)
+        """Return so far per env, summed step by step in float64 like the gym path."""
+        self.steps = torch.zeros(n, dtype=torch.long, device=device)
+        self.active = torch.zeros(n, dtype=torch.bool, device=device)
+        """Envs driving an episode that counts."""
+        self.fill(range(n))
 
     def fill(self, ids: Sequence[int]) -> None:
         """Start the next queued episodes in envs ``ids``; the ones left over go idle."""
@@ -68,7 +65,7 @@ class _Lane:
         self.engine.reset(start, [self.seed[i] for i in start])
         info = self.engine.info()
         lanes, targets = info["lane"].tolist(), info["target_lane"].tolist()
-        cars = (self.engine.present.sum(-1) - 1).tolist()
+        cars = (self.engine.present.sum(-1) - 1).tolist()  # other cars in each scene
         for i in start:
             self.start_lane[i], self.target_lane[i], self.vehicles[i] = lanes[i], targets[i], cars[i]
         idx = torch.as_tensor(start, device=self.engine.device)
@@ -84,17 +81,6 @@ class _Lane:
             episode_return=rets[i], collided=c, reached_target=r, duration=self.engine.cfg.duration,
             target_lane=self.target_lane[i], start_lane=self.start_lane[i], vehicles=self.vehicles[i])
             for i, c, r in zip(ids, collided, reached, strict=True)]
-
-
-def _lane(job: Job, batch: int | None, device: torch.device, frame_stack: int) -> _Lane:
-    n = min(batch or len(job.episodes), len(job.episodes))
-    engine = BatchedLaneChange(job.env, n, device, frame_stack)
-    lane = _Lane(job, engine, deque(job.episodes), [-1] * n, [0] * n, [-1] * n, [-1] * n, [-1] * n,
-                 torch.zeros(n, dtype=torch.float64, device=device),
-                 torch.zeros(n, dtype=torch.long, device=device),
-                 torch.zeros(n, dtype=torch.bool, device=device))
-    lane.fill(range(n))
-    return lane
 
 
 def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None = None,
@@ -117,7 +103,7 @@ def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None =
     actor.to(dev)
     result = JobResult()
     with torch_threads(threads):
-        lanes = [_lane(job, batch, dev, frame_stack) for job in jobs if job.episodes]
+        lanes = [_Lane(job, batch, dev, frame_stack) for job in jobs if job.episodes]
         while live := [lane for lane in lanes if bool(lane.active.any())]:
             pixels = [lane.engine.observation()[lane.active] for lane in live]
             actions = actor.act_pixels(torch.cat(pixels) if len(pixels) > 1 else pixels[0]).to(dev)
