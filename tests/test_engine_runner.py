@@ -180,3 +180,18 @@ def test_engine_on_cuda_gives_the_gym_runner_records(pool):
     actor = GreedyActor(qnet(2, 40.0))
     gym = run_jobs(actor, jobs, engine=False).records
     assert run_jobs(actor, jobs, device="cuda").records == gym
+
+
+def test_a_replayed_episode_with_a_step_hook_is_the_evaluated_one():
+    """Figures replay one episode on a gym env with a hook (rendering): it is the episode
+    the engine evaluated."""
+    from memrl.evaluation.runner import run_job
+
+    net = qnet(2, 40.0)
+    jobs = protocol_jobs(3, 40)
+    recs = run_jobs(GreedyActor(net), jobs).records
+    views: list[np.ndarray] = []
+    one = run_job(GreedyActor(net), Job(jobs[1].env, "non_goal", [jobs[1].episodes[2]]), batch=1,
+                  hook=lambda env, px, action, rec: views.append(px[-1].copy())).records[0]
+    assert one == recs[3 + 2]
+    assert len(views) == one.steps + 1
