@@ -90,6 +90,8 @@ def test_the_engine_path_is_taken_for_tensor_actors_only(monkeypatch):
     run_jobs(DriverActor(RandomPolicy, seeded=True), jobs)
     rgb = [Job({**j.env, "bev": {"grayscale": False}}, j.initial_lane, j.episodes) for j in jobs]
     run_jobs(GreedyActor(QNetwork(frames=12)), rgb)  # RGB frames: only the gym env draws them
+    assert not engine_runner.engine_can_run(Job({"frame_stack": 4}, "random", []))  # gym-stacked
+    assert not engine_runner.engine_can_run(Job({"simulation_frequency": 10}, "random", []))  # highway-env's
     assert len(calls) == 1
     with pytest.raises(TypeError, match="tensor_policy"):
         real(DriverActor(RandomPolicy), jobs)

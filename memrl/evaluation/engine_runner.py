@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from memrl.envs.batched import BatchedLaneChange, resolve_device
-from memrl.envs.config import env_config_dict, validate_env_config
+from memrl.envs.config import EnvConfigError, env_config_dict, validate_env_config
 from memrl.envs.vehicles import IDLE
 from memrl.evaluation.protocol import EpisodeRecord
 from memrl.evaluation.runner import Actor, Job, JobResult, torch_threads
@@ -28,8 +28,13 @@ __all__ = ["engine_can_run", "resolve_device", "run_jobs_on_engine", "torch_thre
 
 def engine_can_run(job: Job) -> bool:
     """Whether the engine gives this job's gym observations: grayscale frames, one per env
-    step (``frame_stack: 1``; the runners stack them), as the evaluation's env configs have."""
-    cfg = validate_env_config({**env_config_dict(), **dict(job.env)})
+    step (``frame_stack: 1``; the runners stack them), as the evaluation's env configs have.
+    A config the engine cannot read (highway-env's own keys, a bad value) is left to the gym
+    env and its message."""
+    try:
+        cfg = validate_env_config({**env_config_dict(), **dict(job.env)})
+    except EnvConfigError:
+        return False
     return bool(cfg.bev.grayscale) and cfg.frame_stack == 1
 
 
