@@ -54,7 +54,8 @@ def _e2e(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import e2e
 
     values: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
-    values["overlap"] = tuple(values.get("overlap", (False, True)))
+    for key in ("overlap", "num_envs", "gpu_num_envs", "gpu_batch_sizes"):
+        values[key] = tuple(values[key])
     return e2e.run(**values)
 
 

@@ -30,7 +30,8 @@ def save_qnet(path: str | Path, net: QNetwork, env_cfg: dict[str, Any],
     """Write a network in the ``final.pt`` format (``qnet`` weights, ``env`` config, extras)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"qnet": net.state_dict(), "env": env_cfg, **(extra or {})}, path)
+    weights = {k: v.cpu() for k, v in net.state_dict().items()}  # loads on any device
+    torch.save({"qnet": weights, "env": env_cfg, **(extra or {})}, path)
     return path
 
 

@@ -48,8 +48,8 @@ def record(cfg: DictConfig) -> RecordSummary:
 
     With ``cfg.example``, make or check the cached scripted example for ``cfg.env`` instead.
     """
-    from memrl.data.demos import dataset_bytes, ensure_example_demos, read_metadata
-    from memrl.data.recording import record_to_dataset
+    from memrl.data.demos import dataset_bytes, read_metadata
+    from memrl.data.recording import ensure_example_demos, record_to_dataset
 
     check_record(cfg)  # every value, and the output folder writable, before recording
     tail = cfg.get("tail_steps")

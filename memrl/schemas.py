@@ -11,84 +11,16 @@ again at the start of each typed function. Importing this module does not import
 
 from __future__ import annotations
 
-import dataclasses
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from memrl.errors import UserError, config_error
-
-SEED_MAX = 2**32 - 1
-"""numpy seeds are 32-bit unsigned."""
-
-
-def spec(default: Any = MISSING, *, ge: float | None = None, gt: float | None = None,
-         le: float | None = None, lt: float | None = None, choices: tuple | None = None,
-         nonempty: bool = False) -> Any:
-    """A dataclass field with its valid range (for lists: of every element)."""
-    meta = {k: v for k, v in dict(ge=ge, gt=gt, le=le, lt=lt, choices=choices,
-                                  nonempty=nonempty).items() if v is not None and v is not False}
-    if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata=meta)
-    return field(default=default, metadata=meta)
-
-
-def _valid(meta: Mapping[str, Any]) -> str:
-    parts = [f"{op} {meta[k]}" for k, op in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<"))
-             if k in meta]
-    if "choices" in meta:
-        parts.append("one of " + ", ".join(map(str, meta["choices"])))
-    return " and ".join(parts)
-
-
-def _element_ok(value: Any, meta: Mapping[str, Any]) -> bool:
-    if not meta:
-        return True
-    if "choices" in meta:
-        return value in meta["choices"]
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return False
-    return all(((k != "ge" or value >= meta[k]) and (k != "gt" or value > meta[k])
-                and (k != "le" or value <= meta[k]) and (k != "lt" or value < meta[k]))
-               for k in meta)
-
-
-def check_fields(schema: type, node: Mapping[str, Any] | DictConfig, prefix: str = "") -> None:
-    """Check every field of ``schema`` that declares a range, and nested schemas' fields.
-
-    Raises:
-        ConfigError: ``config '<key>': must be <range>, got <value>``.
-    """
-    for f in dataclasses.fields(schema):
-        if f.name not in node:
-            continue
-        key = prefix + f.name
-        sub = f.default_factory if f.default_factory is not dataclasses.MISSING else None
-        meta = f.metadata
-        if not meta and not dataclasses.is_dataclass(sub):
-            continue  # nothing to check (and group nodes may hold Hydra interpolations)
-        value = node[f.name]
-        if isinstance(value, DictConfig | ListConfig):
-            value = OmegaConf.to_container(value, resolve=True)
-        if dataclasses.is_dataclass(sub) and isinstance(value, Mapping):
-            check_fields(sub, value, key + ".")  # type: ignore[arg-type]
-            continue
-        if value is None:
-            continue
-        if isinstance(value, list):
-            if meta.get("nonempty") and not value:
-                raise config_error(key, "needs at least one value")
-            bad = [v for v in value if not _element_ok(v, {k: m for k, m in meta.items()
-                                                            if k != "nonempty"})]
-            if bad:
-                raise config_error(key, f"every value must be {_valid(meta)}, got {value!r}")
-        elif {k for k in meta if k != "nonempty"} and \
-                not _element_ok(value, {k: m for k, m in meta.items() if k != "nonempty"}):
-            raise config_error(key, f"must be {_valid(meta)}, got {value!r}")
+from memrl.fields import SEED_MAX, _element_ok, _valid, check_fields, spec  # noqa: F401
 
 
 def check_writable(path: str | os.PathLike, key: str) -> None:
@@ -125,6 +57,9 @@ class TrainSchema:
     """Name of the command's output folder (``outputs/<task_name>/...``)."""
     seed: int = spec(ge=0, le=SEED_MAX)
     """Seed of the run: weights, exploration, episode scenes."""
+    device: str = MISSING
+    """Where the network, loss, optimizer, replay storage and batched envs live: ``auto``
+    (CUDA when present), ``cpu``, ``cuda`` or ``cuda:K``."""
     total_frames: int | None = spec(ge=1)
     """Env-step budget (null: no limit); checked at episode ends."""
     total_episodes: int | None = spec(ge=1)
@@ -164,6 +99,24 @@ def check_env(node: Any, key: str = "env") -> None:
     validate_env_config(values)  # type: ignore[arg-type]
 
 
+def check_device(value: Any, key: str) -> None:
+    """``auto``, ``cpu``, ``cuda`` or ``cuda:K`` naming a device this machine has."""
+    import re
+
+    text = str(value)
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", text):
+        raise config_error(key, f"expected auto, cpu, cuda or cuda:K, got {value!r}")
+    if text.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise config_error(key, f"{text}: CUDA is not available on this machine "
+                               "(use device=cpu, or device=auto to take CUDA where present)")
+        index = int(text.split(":")[1]) if ":" in text else 0
+        if index >= torch.cuda.device_count():
+            raise config_error(key, f"{text}: only {torch.cuda.device_count()} CUDA device(s) here")
+
+
 def check_train(cfg: DictConfig) -> None:
     """Every value of a train config, and the folders it names (resume, demos_path)."""
     from memrl.dqn.config import check_train_config
@@ -175,6 +128,7 @@ def check_train(cfg: DictConfig) -> None:
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
     check_env(cfg.env)
+    check_device(cfg.device, "device")
     if cfg.resume is not None and not Path(cfg.resume).is_dir():
         raise config_error("resume", f"no run folder {cfg.resume}")
     demos = cfg.mode.get("demos_path")
@@ -404,6 +358,11 @@ class MemoryBench:
 class E2EBench:
     total_frames: int = spec(ge=1)
     overlap: list[bool] = MISSING
+    num_envs: list[int] = spec(ge=1, nonempty=True)
+    gpu_num_envs: list[int] = spec(ge=1)
+    gpu_batch_sizes: list[int] = spec(ge=1)
+    gpu_total_frames: int = spec(ge=1)
+    device: str = MISSING
     learner_seconds: float = spec(gt=0)
     seed: int = spec(ge=0, le=SEED_MAX)
     overrides: list[str] = MISSING

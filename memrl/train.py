@@ -30,7 +30,9 @@ def prior_knowledge(cfg: DictConfig) -> TensorDictBase:
     if path is None:
         if not demos.example_demos_path(cfg.env, Path(cfg.paths.data_dir)).exists():
             check_writable(cfg.paths.data_dir, "paths.data_dir")  # before recording it
-        path = demos.ensure_example_demos(cfg.env, Path(cfg.paths.data_dir))
+        from memrl.data.recording import ensure_example_demos
+
+        path = ensure_example_demos(cfg.env, Path(cfg.paths.data_dir))
     return demos.load_demos(Path(path), env_cfg=cfg.env)
 
 

@@ -53,21 +53,32 @@ def test_bench_memory_measures_both_storages_in_fresh_processes(compose_cfg, tmp
     assert compact["added_bytes"] >= 0.7 * compact["storage_bytes"]
     assert naive["added_bytes"] > 2 * compact["added_bytes"]
     assert res["ratio_compact_to_naive"] < 0.5 and res["compact_within_limit"]
+    # 16 envs written one env step (16 rows) at a time, both storages timed in the same run
+    streams = res["streams"]
+    assert streams["compact"]["ring_frames"] == 2 * 3000 - 1 + 31 * 4
+    assert streams["compact"]["env_steps"] == streams["naive"]["env_steps"] == 3000 // 16
+    assert streams["ratio_compact_to_naive_bytes"] < 0.5
+    assert streams["compact"]["step_us"] > 0 and streams["naive"]["step_us"] > 0
 
 
 def test_bench_e2e_reports_the_busy_share_after_warmup(compose_cfg, tmp_path):
     cfg = compose_cfg("bench", ["benchmarks=[e2e]", "e2e.total_frames=48",
-                                "e2e.learner_seconds=0.05",
+                                "e2e.learner_seconds=0.05", "e2e.num_envs=[1,4]",
                                 "e2e.overrides=['agent.warmup_frames=16','agent.batch_size=8',"
                                 "'env.duration=20','buffer.capacity=200']"])
-    runs = bench(cfg, tmp_path)["e2e"]["runs"]
-    assert [r["agent_options"]["overlap"] for r in runs] == [False, True]
+    out = bench(cfg, tmp_path)["e2e"]
+    runs = out["runs"]
+    assert out["device"] == "cpu" or torch.cuda.is_available()
+    assert [(r["num_envs"], r["agent_options"]["overlap"]) for r in runs[:4]] == [
+        (1, False), (1, True), (4, False), (4, True)]
     for res in runs:
         assert res["total_frames"] >= 48 and res["updates"] >= 2
         assert 0 < res["learner_busy_after_warmup"] <= 1
         assert res["updates_per_s_after_warmup"] > 0 and res["learner_only_updates_per_s"] > 0
-    # The same seed and schedule: the same number of updates either way.
-    assert runs[0]["updates"] == runs[1]["updates"]
+    # The same seed and schedule: the same number of updates either way, at the replay ratio
+    # of one env: a round every 4 env steps from the warm-up's 16 on.
+    for a, b in ((runs[0], runs[1]), (runs[2], runs[3])):
+        assert a["updates"] == b["updates"] == a["total_frames"] // 4 - 3
 
 
 FLOAT32_UNIT_ROUNDOFF = 2.0 ** -24

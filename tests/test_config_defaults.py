@@ -95,3 +95,37 @@ def test_tab_completion_answers_without_importing_torch():
     imported = {line.split("|")[-1].strip() for line in proc.stderr.splitlines()
                 if line.startswith("import time:")}
     assert "torch" not in imported
+
+
+def _leaves(node, prefix=""):
+    for key, value in node.items():
+        if isinstance(value, dict):
+            yield from _leaves(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+@pytest.mark.parametrize(("path", "schema"), [
+    ("agent/dqn.yaml", "memrl.dqn.config:AgentConfig"),
+    ("buffer/default.yaml", "memrl.dqn.config:BufferConfig"),
+    ("deploy/default.yaml", "memrl.control.config:DeployConfig"),
+    ("env/lane_change.yaml", "memrl.envs.config:LaneChangeConfig"),
+])
+def test_group_files_hold_only_what_differs_from_their_schema(path, schema):
+    """Defaults live in one place, the dataclass schema: a group file that repeats a default
+    would silently win over a later change of the schema."""
+    import importlib
+
+
+    module, name = schema.split(":")
+    defaults = OmegaConf.to_container(OmegaConf.structured(getattr(importlib.import_module(module), name)))
+    raw = yaml.safe_load((CONF / path).read_text()) or {}
+    raw.pop("defaults", None)
+    repeated = []
+    for key, value in _leaves(raw):
+        cur = defaults
+        for part in key.split("."):
+            cur = cur.get(part, "<missing>") if isinstance(cur, dict) else "<missing>"
+        if cur == value:
+            repeated.append(key)
+    assert not repeated, f"conf/{path} repeats the schema's defaults of {repeated}"

@@ -21,7 +21,6 @@ from memrl.data.demos import (
     DemoDatasetError,
     dataset_bytes,
     demos_into_storage,
-    ensure_example_demos,
     env_config_hash,
     example_demos_path,
     load_demos,
@@ -29,7 +28,7 @@ from memrl.data.demos import (
     save_demos,
     transition_spec,
 )
-from memrl.data.recording import reached_index, record_episodes, record_to_dataset
+from memrl.data.recording import ensure_example_demos, reached_index, record_episodes, record_to_dataset
 from memrl.data.transitions import TRANSITION_KEYS, to_transitions
 from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import action_index

@@ -10,7 +10,7 @@ import torch
 
 from memrl.dqn.stage1 import drive_check, drive_counts
 from memrl.envs.vehicles import IDLE
-from memrl.evaluation import engine_runner
+from memrl.evaluation import engine_runner, runner
 from memrl.evaluation.periodic import periodic_eval
 from memrl.evaluation.policies import DriverActor, GreedyActor
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
@@ -83,7 +83,7 @@ def test_the_engine_path_is_taken_for_tensor_actors_only(monkeypatch):
         calls.append(kwargs["device"])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(engine_runner, "run_jobs_on_engine", spy)
+    monkeypatch.setattr(runner, "run_jobs_on_engine", spy)
     jobs = protocol_jobs(2, 10)
     run_jobs(GreedyActor(qnet(0)), jobs)
     assert calls == [torch.device("cpu")]

@@ -63,14 +63,14 @@ def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
     assert not trainer.learner.optimizer.state
     # agreement >= 0 holds at the first check: stage 1 stops after check_every updates
     assert trainer.stage1.updates == 4 and trainer.stage1.stop_reason.startswith("agreement")
-    assert trainer.counters.stage == "B2" and len(trainer.buffer) == 0
+    assert trainer.counters.stage == "B2" and len(trainer.stage.buffer) == 0
     saved = torch.load(tmp_path / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
     now = trainer.learner.loss_module.state_dict()
     online = [k for k in saved if k.startswith("value_network_params")]
     assert online and all(torch.equal(saved[k], now[k]) for k in online)
     for k in online:  # the target network starts from the stage-1 online weights too
         assert torch.equal(now["target_" + k], saved[k])
-    assert float(trainer.explore.eps) == pytest.approx(cfg.mode.stage2.eps_start)
+    assert float(trainer.stage.explore.eps) == pytest.approx(cfg.mode.stage2.eps_start)
 
 
 def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, demos):
@@ -98,17 +98,17 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_pat
     full = train(cfg, tmp_path / "full", demos=demos)
 
     # Kill after episode 5: episodes 5 was done after the checkpoint at 4 and is redone.
-    original = Trainer.run_episode
+    original = Trainer._episodes_done
 
-    def dying(self):
+    def dying(self, ends):
+        original(self, ends)
         if self.counters.episodes == 5:
             raise Killed("simulated kill")
-        original(self)
 
-    monkeypatch.setattr(Trainer, "run_episode", dying)
+    monkeypatch.setattr(Trainer, "_episodes_done", dying)
     with pytest.raises(Killed):
         train(cfg, tmp_path / "cut", demos=demos)
-    monkeypatch.setattr(Trainer, "run_episode", original)
+    monkeypatch.setattr(Trainer, "_episodes_done", original)
     assert len(rows(tmp_path / "cut" / "episodes.csv")) == 5
     resumed_cfg = compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"])
     resumed = train(resumed_cfg, demos=demos)
@@ -128,8 +128,8 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_pat
     ta, tb = Trainer(cfg, tmp_path / "x", demos), Trainer(cfg, tmp_path / "y", demos)
     ta.resume(tmp_path / "full")
     tb.resume(tmp_path / "cut")
-    agent_a = ta.buffer.online_buffer if mode == "A" else ta.buffer
-    agent_b = tb.buffer.online_buffer if mode == "A" else tb.buffer
+    agent_a = ta.stage.buffer.online_buffer if mode == "A" else ta.stage.buffer
+    agent_b = tb.stage.buffer.online_buffer if mode == "A" else tb.stage.buffer
     assert len(agent_a) == len(agent_b) > 0
     idx = torch.arange(len(agent_a))
     assert (agent_a.storage.get(idx) == agent_b.storage.get(idx)).all()
@@ -259,9 +259,9 @@ class ScriptedDrives:
 
 
 def _stage1(compose_cfg, tmp_path, demos, monkeypatch, drives, extra):
-    import memrl.dqn.loop as loop
+    import memrl.dqn.stage1 as stage1
 
-    monkeypatch.setattr(loop, "drive_check", drives)
+    monkeypatch.setattr(stage1, "drive_check", drives)
     cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.drive_episodes=4", *extra])
     trainer = Trainer(cfg, tmp_path, demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0

@@ -9,6 +9,7 @@ first update (the random-action ``warmup_frames`` are over) to the last.
 
 from __future__ import annotations
 
+import platform
 import tempfile
 import time
 from pathlib import Path
@@ -55,12 +56,29 @@ class TimedTrainer(Trainer):
 
 
 def run(total_frames: int = 1000, learner_seconds: float = 5.0, seed: int = 0,
-        overrides: list[str] | None = None,
-        overlap: tuple[bool, ...] = (False, True)) -> dict[str, Any]:
-    """The smoke preset for ``total_frames`` env steps once per ``agent.overlap`` value, side
-    by side in this process: frames/s, updates/s and the learner's busy share of each."""
-    return {"runs": [run_one(total_frames, learner_seconds, seed,
-                             [*(overrides or []), f"agent.overlap={bool(o)}"]) for o in overlap]}
+        overrides: list[str] | None = None, overlap: tuple[bool, ...] = (False, True),
+        num_envs: tuple[int, ...] = (1, 16), gpu_num_envs: tuple[int, ...] = (16, 256, 1024),
+        gpu_batch_sizes: tuple[int, ...] = (32, 256), gpu_total_frames: int = 200_000,
+        device: str = "auto") -> dict[str, Any]:
+    """The smoke preset, side by side in this process: on the CPU for ``total_frames`` env steps
+    per env count and ``agent.overlap`` value; on a CUDA device (``device``) for
+    ``gpu_total_frames`` per env count and batch size. Frames/s, updates/s and the learner's
+    busy share of each run."""
+    from memrl.envs.batched import resolve_device
+
+    dev = resolve_device(device)
+    base = [*(overrides or [])]
+    runs = [run_one(total_frames, learner_seconds, seed,
+                    [*base, "device=cpu", f"env.num_envs={n}", f"agent.overlap={bool(o)}"])
+            for n in num_envs for o in overlap]
+    if dev.type == "cuda":
+        runs += [run_one(gpu_total_frames, learner_seconds, seed,
+                         [*base, f"device={dev}", f"env.num_envs={n}", f"agent.batch_size={b}",
+                          "agent.overlap=false", "buffer.capacity=100000"])
+                 for n in gpu_num_envs for b in gpu_batch_sizes]
+    return {"device": str(dev), "threads": torch.get_num_threads(),
+            "cpu": platform.processor() or platform.machine(),
+            "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None, "runs": runs}
 
 
 def run_one(total_frames: int, learner_seconds: float, seed: int,
@@ -88,13 +106,14 @@ def run_one(total_frames: int, learner_seconds: float, seed: int,
         # The reference: the same learner and buffer, updating back to back.
         n, t0 = 0, time.perf_counter()
         while time.perf_counter() - t0 < learner_seconds:
-            trainer.learner.update(trainer.buffer.sample())  # the timed wrapper: a few us
+            trainer.learner.update(trainer.stage.buffer.sample())  # the timed wrapper: a few us
             n += 1
         learner_only = n / (time.perf_counter() - t0)
     torch.set_num_threads(threads_before)
     upd_after = len(spans) / window
     return {
-        "preset": "+experiment=smoke (Default mode)", "total_frames": summary.frames,
+        "preset": "+experiment=smoke (Default mode)", "num_envs": summary.num_envs,
+        "device": summary.device, "total_frames": summary.frames,
         "episodes": summary.episodes, "updates": summary.updates,
         "warmup_frames": int(cfg.agent.warmup_frames), "train_every": int(cfg.agent.train_every),
         "batch_size": int(cfg.agent.batch_size),

@@ -84,7 +84,8 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
     also drives the greedy agent every that many updates (a ``curve`` per run; its driving
     time is left out of updates/s)."""
     from memrl.configs import register_configs
-    from memrl.data.demos import ensure_example_demos, load_demos
+    from memrl.data.demos import load_demos
+    from memrl.data.recording import ensure_example_demos
     from memrl.dqn.loop import Trainer
 
     register_configs()

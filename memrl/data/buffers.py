@@ -14,6 +14,11 @@ With ``compact=True`` (the default) every buffer stores each 84x84 frame once
 (:class:`memrl.data.frame_store.FrameStackStorage`: a frame ring plus per-transition frame
 refs; stacks are rebuilt when sampled); ``compact=False`` stores both full stacks per
 transition (TorchRL's plain ``LazyTensorStorage``). Samples are the same either way.
+
+``streams=N``: the agent's transitions arrive from N envs stepped together, one
+``extend`` of N rows per env step (row i = env i; see :mod:`memrl.data.frame_store`).
+``device``: where both parts store and sample (TorchRL's samplers draw CPU indices; the
+batches come back on ``device``).
 """
 
 from __future__ import annotations
@@ -29,26 +34,38 @@ from torchrl.data.replay_buffers.storages import Storage
 from memrl.data.frame_store import FrameStackStorage, count_frames
 
 
-def agent_storage(capacity: int, compact: bool = True) -> Storage:
-    """Storage of ``capacity`` agent transitions: a frame ring (each frame once) or full stacks."""
-    return FrameStackStorage(capacity) if compact else LazyTensorStorage(capacity)
+def agent_storage(capacity: int, compact: bool = True, streams: int = 1,
+                  device: torch.device | str = "cpu") -> Storage:
+    """Storage of ``capacity`` agent transitions: a frame ring (each frame once) or full stacks.
+
+    Args:
+        capacity: transitions held.
+        compact: the frame ring (:class:`FrameStackStorage`), else full stacks.
+        streams: envs writing interleaved rows (row ``r`` of a write is env ``r % streams``).
+        device: where the transitions are stored and sampled.
+    """
+    if compact:
+        return FrameStackStorage(capacity, streams=streams, device=device)
+    return LazyTensorStorage(capacity, device=device)
 
 
-def agent_buffer(capacity: int, batch_size: int, compact: bool = True) -> TensorDictReplayBuffer:
-    """FIFO replay of the agent's own transitions, uniform sampling."""
-    return TensorDictReplayBuffer(storage=agent_storage(capacity, compact), batch_size=batch_size)
+def agent_buffer(capacity: int, batch_size: int, compact: bool = True, streams: int = 1,
+                 device: torch.device | str = "cpu") -> TensorDictReplayBuffer:
+    """FIFO replay of the agent's own transitions, uniform sampling (see :func:`agent_storage`)."""
+    return TensorDictReplayBuffer(storage=agent_storage(capacity, compact, streams, device),
+                                  batch_size=batch_size)
 
 
 def demo_buffer(demos: TensorDictBase, batch_size: int | None = None,
-                compact: bool = True) -> ReplayBuffer:
+                compact: bool = True, device: torch.device | str = "cpu") -> ReplayBuffer:
     """A buffer filled with ``demos`` (its capacity is their count: nothing else gets in).
 
     Demos arrive as full stacks (:func:`memrl.data.demos.load_demos` rebuilds them from either
     dataset format); a compact buffer converts them on entry, with a ring of exactly the frames
     they need (they are written once).
     """
-    storage: Storage = (FrameStackStorage(len(demos), frames=count_frames(demos)) if compact
-                        else LazyTensorStorage(len(demos)))
+    storage: Storage = (FrameStackStorage(len(demos), frames=count_frames(demos), device=device)
+                        if compact else LazyTensorStorage(len(demos), device=device))
     rb = ReplayBuffer(storage=storage, batch_size=batch_size)
     rb.extend(demos)
     return rb
@@ -65,18 +82,22 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
         batch_size: default batch size.
         sampling: ``stratified`` or ``proportional``.
         compact: store each frame once (both parts), see :mod:`memrl.data.frame_store`.
+        streams: envs writing the agent part together (one ``extend`` of ``streams`` rows per
+            env step).
+        device: where both parts store and sample.
     """
 
     def __init__(self, demos: TensorDictBase, capacity: int, demo_fraction: float,
-                 batch_size: int, sampling: str = "stratified", compact: bool = True) -> None:
+                 batch_size: int, sampling: str = "stratified", compact: bool = True,
+                 streams: int = 1, device: torch.device | str = "cpu") -> None:
         if sampling not in ("stratified", "proportional"):
             raise ValueError(f"sampling must be stratified or proportional, got {sampling!r}")
         n_demo = int(round(demo_fraction * capacity))
         if len(demos) == 0:
             raise ValueError("mode A needs at least one prior-knowledge transition")
         kept = demos[: min(n_demo, len(demos))]
-        super().__init__(demo_buffer(kept, compact=compact),
-                         online_storage=agent_storage(capacity - n_demo, compact),
+        super().__init__(demo_buffer(kept, compact=compact, device=device),
+                         online_storage=agent_storage(capacity - n_demo, compact, streams, device),
                          offline_fraction=demo_fraction, batch_size=batch_size)
         self.sampling = sampling
         self.capacity = capacity

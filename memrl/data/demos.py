@@ -8,7 +8,7 @@ A dataset (format version 2) is a folder::
                            stack of ``pixels``, then the newest frame of ``next/pixels``), action,
                            is_demo, next/{reward, done, terminated, truncated}; batch size [N]
 
-The refs are the replay's frame ring's (:func:`memrl.data.frame_store.plan_pushes`), with the
+The refs are the replay's frame ring's (:func:`memrl.data.frame_plan.plan_write`), with the
 ring as large as the dataset: an episode of T steps stores T + 1 frames, not 8 T, and the flat
 shades of the BEV deflate about 80x. Version 1
 (``transitions/`` holding both full stacks per transition, 8x the frames) still loads.
@@ -48,7 +48,8 @@ from memrl.data.demo_checks import (
     check_values,
     tensor_file,
 )
-from memrl.data.frame_store import REFS_KEY, plan_pushes
+from memrl.data.frame_plan import Pixels, not_shifted_message, plan_write
+from memrl.data.frame_store import REFS_KEY
 from memrl.envs.config import LaneChangeConfig, validate_env_config
 from memrl.envs.torchrl_env import env_kwargs
 
@@ -66,6 +67,7 @@ EPISODE_KEYS = (
     "target_lane", "initial_lane", "initial_speed", "initial_offset", "initial_heading",
     "initial_curvature", "vehicles_count", "other_speed",
     "spawn_ahead", "spawn_behind", "spawn_gap", "spawn_attempts", "opponent", "scene",
+    "num_envs",  # how many envs a trainer steps at once: the same task, the same transitions
 )
 """Env-config keys left out of :func:`env_config_hash`: they choose which episodes are drawn
 (start and target lanes, the agent's starting pose, how many other cars, where, how fast and
@@ -190,22 +192,22 @@ def compact_frames(chunks: Sequence[TensorDictBase]) -> tuple[torch.Tensor, list
     Raises:
         ValueError: where ``("next", "pixels")`` is not ``pixels`` shifted by one frame.
     """
-    head, prev_refs, prev_stack = 0, None, None
+    ops, head, prev_refs, prev_stack = Pixels(numpy=True), 0, None, None
     frames: list[np.ndarray] = []
     out: list[TensorDictBase] = []
     for chunk in chunks:
         p, q = chunk.get("pixels").numpy(), chunk.get(("next", "pixels")).numpy()
-        refs, pushes, prev_refs = plan_pushes(p, q, head, prev_refs, prev_stack)
-        ctr, rows, cols = (np.asarray(x) for x in zip(*pushes, strict=True))
-        assert ctr[0] == head and ctr[-1] == head + len(ctr) - 1  # pushes are consecutive
-        block = np.empty((len(ctr), *p.shape[2:]), dtype=p.dtype)
-        from_p = cols < p.shape[1]
-        block[from_p] = p[rows[from_p], cols[from_p]]
-        block[~from_p] = q[rows[~from_p], -1]
-        frames.append(block)
-        head, prev_stack = head + len(ctr), q[-1]
+        plan = plan_write(p, q, head, 1, prev_refs, prev_stack, ops)
+        pushes, _, bad = plan.read_stats()
+        if bad:
+            ok = (q[:, :-1] == p[:, 1:]).reshape(len(p), -1).all(1)
+            raise ValueError(not_shifted_message(int(np.flatnonzero(~ok)[0])))
+        # pushes are consecutive counters in row-major order of ``pushed``: frame j < stack of
+        # a row is pixels[:, j], frame stack is next_pixels[:, -1]
+        frames.append(np.concatenate([p, q[:, -1:]], 1)[plan.pushed])
+        head, prev_refs, prev_stack = head + pushes, plan.refs[-1:, 1:], q[-1:]
         rest = chunk.exclude(*PIXELS)
-        rest.set(REFS_KEY, torch.tensor(refs, dtype=torch.long))
+        rest.set(REFS_KEY, torch.from_numpy(plan.refs))
         out.append(rest)
     return torch.from_numpy(np.concatenate(frames)), out
 
@@ -458,32 +460,3 @@ def example_demos_path(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | Non
     """Where the cached scripted-driver example for this env config lives."""
     folder = Path(data_dir) if data_dir is not None else default_data_dir()
     return folder / f"example_scripted_{env_config_hash(env_cfg)[:12]}"
-
-
-def ensure_example_demos(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None, *,
-                         episodes: int = 10, seed: int = 0, overwrite: bool = False) -> Path:
-    """Path of the cached example dataset made by the scripted driver; records it if needed.
-
-    The dataset is recorded with ``env_cfg`` (keeping stable episodes only) and cached under
-    ``data_dir`` by env-config hash. A cached dataset that fails :func:`load_demos` is
-    recorded again.
-    """
-    from memrl.data.recording import record_to_dataset  # recording needs the env stack
-    from memrl.modules.scripted import ScriptedDriver
-
-    path = example_demos_path(env_cfg, data_dir)
-    if path.exists() and not overwrite:
-        try:
-            load_demos(path, env_cfg)
-            return path
-        except DemoDatasetError as e:
-            log.warning("cached example dataset is unusable, recording it again: %s", e)
-    log.info("recording the example dataset (%d scripted episodes) into %s", episodes, path)
-    saved, rec = record_to_dataset(
-        env_cfg, ScriptedDriver(), path, episodes=episodes, seed=seed, keep_stable=True,
-        source="scripted", overwrite=True,
-        extra={"policy": {"_target_": "memrl.modules.scripted.ScriptedDriver"}, "example": True})
-    if saved is None:
-        raise RuntimeError(f"the scripted driver kept no stable episode out of {episodes}; "
-                           f"recorded: {rec.stats()['recorded']}")
-    return path

@@ -10,33 +10,45 @@ It plugs into any TorchRL buffer (``ReplayBuffer``, ``TensorDictReplayBuffer``, 
 of ``OfflineToOnlineReplayBuffer``), samplers and writers unchanged, and keeps TorchRL's
 ``dumps``/``loads`` checkpointing (the ring is saved next to the per-transition part).
 
-Writing a transition pushes frames into the ring:
+Streams. Data from ``S`` envs stepped together (``streams=S``) arrives as writes of whole
+steps: row ``r`` of a write belongs to stream ``r % S`` (so a write of ``k S`` rows is ``k``
+consecutive steps, step-major), and a write whose row count is not a multiple of ``S`` raises
+``ValueError``. Writing a transition pushes frames into the ring:
 
-- continuation (its ``pixels`` equal the previous transition's ``("next", "pixels")``, as
-  consecutive env steps do): the refs of that stack are reused, 1 push (the new frame);
+- continuation (its ``pixels`` equal the previous ``("next", "pixels")`` of its stream, as
+  consecutive env steps do; content is compared, so any data is stored right): the refs of
+  that stack are reused, 1 push (the new frame);
 - otherwise (an episode start, whose stack is the reset frame repeated by
   ``CatFrames(padding="same")``, or any stack): its distinct consecutive frames are pushed
   (1 for a reset stack, at most 4), plus the new frame.
 
-Ring size bound (default ``2 * max_size + stack - 1``). Env data pushes at most 2 frames per
-transition: 1 for a continuation, 2 for an episode start (the reset frame and the new frame).
-Let transition ``t`` be written when ``h0`` frames have been pushed, pushing ``k`` frames.
+Ring size bound (default ``2 max_size - 1 + (2 S - 1) stack``; ``2 max_size + stack - 1`` for
+one stream). Env data pushes at most 2 frames per row (1 for a continuation, 2 for an episode
+start). Count rows in write order; take a live row ``x`` of stream ``s``.
 
-- Its oldest frame: a continuation reuses the previous ``next`` stack, whose at most
-  ``stack`` distinct frames were the last ``stack`` pushes, so its oldest counter is
-  ``>= h0 - stack`` (and ``k = 1``); an episode start's oldest counter is ``h0`` (``k = 2``).
-- With a FIFO writer, ``t`` is live while at most ``max_size - 1`` later transitions are
-  written, pushing at most ``2 (max_size - 1)``: the head stays ``<= h0 + k + 2 max_size - 2``.
-- A frame with counter ``c`` is intact while ``c >= head - ring_size``. Continuation:
-  ``h0 - stack >= h0 + 2 max_size - 1 - ring_size`` iff ``ring_size >= 2 max_size + stack - 1``;
-  episode start: ``ring_size >= 2 max_size``.
+- Its oldest frame: if it starts an episode, its own first push. If it continues, it is the
+  new frame of row ``x - stack S`` at the earliest (rows ``x - (stack - 1) S, ..., x`` of the
+  same stream continue, reset frames are newer), and those ``stack`` rows push 1 frame each.
+- With a FIFO writer, ``x`` is live after a write while at most ``max_size - 1`` rows follow
+  it. From that oldest frame (excluded) to the end of such a write there are at most
+  ``stack S + max_size - 1`` rows, pushing at most ``2 (stack S + max_size - 1) - stack``.
+- A frame with counter ``c`` is intact while ``c >= head - ring_size``, hence
+  ``ring_size >= 2 max_size - 1 + (2 S - 1) stack`` (episode start: ``>= 2 max_size``).
 
-So ``2 * max_size + stack - 1`` frames suffice whatever the episode lengths, and no fewer do
-(a continuation followed by ``max_size - 1`` one-step episodes; both tested). At 84x84 and
-``max_size`` 100,000 that is 200,003 frames = 1.41 GB, against 5.6 GB for two full stacks
-per transition. A write that would overwrite a frame still referenced (data that pushes more,
-e.g. shuffled mid-episode stacks, or a smaller ring) raises :class:`FrameRingOverflow` before
-anything is changed.
+No fewer frames do: stream 0 continues for ``stack + 1`` steps while every other row of the
+data is a one-step episode (tested for 1, 3 and 16 streams). At 84x84 and ``max_size`` 100,000
+that is 200,003 frames = 1.41 GB for one stream and 200,123 for 16, against 5.6 GB for two
+full stacks per transition. A write that would overwrite a frame still referenced (data that
+pushes more, e.g. shuffled mid-episode stacks, or a smaller ring) raises
+:class:`FrameRingOverflow` before anything is changed.
+
+Device. With ``device`` (any torch device) the ring and the per-transition tensors live there,
+and writes and samples run there (:mod:`memrl.data.frame_plan`); pixels never go to the host.
+Host syncs: a write reads 3 integers at once (frames pushed, lowest ref, shift check), plus 1
+when the cached lower bound of the live refs falls below the ring's floor and is recomputed
+(for env data whose episodes are much longer than one step, about once per ``max_size``
+pushed frames; up to every write when nearly every row starts an episode); a sample reads 1
+(its lowest ref). On CPU the pixel work uses numpy (see :class:`memrl.data.frame_plan.Pixels`).
 
 TorchRL's own route, ``CatFrames.make_rb_transform_and_sampler`` + ``SliceSampler``, is not
 used: it samples only slices of ``N`` steps lying inside one stored episode, so the first
@@ -56,17 +68,23 @@ import torch
 from tensordict import TensorDictBase, is_tensor_collection
 from torchrl.data import LazyTensorStorage
 
+from memrl.data.frame_plan import (
+    Pixels,
+    count_frames,
+    first_bad,
+    not_shifted_message,
+    plan_write,
+    ring_frames,
+)
+
+__all__ = ["REFS_KEY", "FrameRingOverflow", "FrameStackStorage", "count_frames", "ring_frames"]
+
 REFS_KEY = "frame_refs"
 """Per-transition key of the global frame counters (``stack + 1`` of them, int64)."""
 
 
 class FrameRingOverflow(RuntimeError):
     """A write would overwrite a frame that a live transition still refers to."""
-
-
-def ring_frames(max_size: int, stack: int = 4) -> int:
-    """Frames a FIFO store of ``max_size`` env transitions needs (see the module docstring)."""
-    return 2 * int(max_size) + int(stack) - 1
 
 
 def _slots(cursor: Any, n: int) -> torch.Tensor:
@@ -77,100 +95,48 @@ def _slots(cursor: Any, n: int) -> torch.Tensor:
     return torch.as_tensor(cursor, dtype=torch.long).reshape(-1)
 
 
-def plan_pushes(pixels: np.ndarray, next_pixels: np.ndarray, head: int,
-                prev_refs: list[int] | None, prev_stack: np.ndarray | None
-                ) -> tuple[list[list[int]], list[tuple[int, int, int]], list[int] | None]:
-    """Frame refs of ``n`` transitions and the frames to push for them (numpy: no thread pool).
-
-    Args:
-        pixels, next_pixels: ``[n, stack, H, W]`` stacks.
-        head: frames pushed so far (the counter of the next push).
-        prev_refs: refs of the ``next`` stack of the transition written last (None: none).
-        prev_stack: that stack's content ``[stack, H, W]``.
-
-    Returns:
-        ``refs`` (``n`` lists of ``stack + 1`` counters), ``pushes`` as (counter, row, frame)
-        with frame in ``[0, stack)`` for ``pixels[row, frame]`` and ``stack`` for
-        ``next_pixels[row, -1]``, and the refs of the last row's ``next`` stack.
-    """
-    n, stack = pixels.shape[0], pixels.shape[1]
-    if next_pixels.shape != pixels.shape:
-        raise ValueError(f"pixels {tuple(pixels.shape)} and next pixels "
-                         f"{tuple(next_pixels.shape)} differ in shape")
-    shifted = (next_pixels[:, :-1] == pixels[:, 1:]).reshape(n, -1).all(1)
-    if not shifted.all():
-        row = int(np.flatnonzero(~shifted)[0])
-        raise ValueError(f"transition {row}: ('next', 'pixels') is not 'pixels' shifted by one "
-                         "frame (as CatFrames makes it): it cannot be stored compactly")
-    cont = np.zeros(n, dtype=bool)
-    if n > 1:
-        cont[1:] = (pixels[1:] == next_pixels[:-1]).reshape(n - 1, -1).all(1)
-    if prev_refs is not None and prev_stack is not None:
-        cont[0] = np.array_equal(pixels[0], prev_stack)
-    # new[i][j - 1]: frame j of row i differs from frame j - 1 (only needed where not cont)
-    new = (pixels[:, 1:] != pixels[:, :-1]).reshape(n, stack - 1, -1).any(2).tolist()
-    refs: list[list[int]] = []
-    pushes: list[tuple[int, int, int]] = []
-    prev = prev_refs
-    for i, continues in enumerate(cont.tolist()):
-        if continues:
-            assert prev is not None
-            p = list(prev)
-        else:
-            p, c = [], head
-            for j in range(stack):
-                if j == 0 or new[i][j - 1]:
-                    c = head
-                    pushes.append((head, i, j))
-                    head += 1
-                p.append(c)
-        pushes.append((head, i, stack))
-        refs.append(p + [head])
-        head += 1
-        prev = p[1:] + [refs[-1][-1]]
-    return refs, pushes, prev
-
-
-def count_frames(data: TensorDictBase, pixels_key: str = "pixels", chunk: int = 512) -> int:
-    """Frames that storing ``data`` (in order, into an empty store) pushes into the ring."""
-    head, prev_refs, prev_stack = 0, None, None
-    for start in range(0, len(data), chunk):
-        part = data[start:start + chunk]
-        p, q = part.get(pixels_key).numpy(), part.get(("next", pixels_key)).numpy()
-        refs, pushes, prev_refs = plan_pushes(p, q, head, prev_refs, prev_stack)
-        head += len(pushes)
-        prev_stack = q[-1]
-    return head
-
-
 class FrameStackStorage(LazyTensorStorage):
     """``LazyTensorStorage`` of transitions whose stacked frames are stored once, in a ring.
 
     It takes and gives the usual transition layout (``pixels`` and ``("next", "pixels")``
     ``[stack, H, W]``); ``("next", "pixels")`` must be ``pixels`` shifted by one frame, as
-    ``CatFrames`` makes it. See the module docstring for the layout and the ring-size bound.
+    ``CatFrames`` makes it. See the module docstring for the layout, streams and the ring bound.
 
     Args:
-        max_size: transitions held.
+        max_size: transitions held (at least ``streams``).
         frames: ring size in frames (default :func:`ring_frames`: enough for env data in FIFO
             order, whatever the episode lengths).
         stack: frames per stack.
+        streams: interleaved env streams; row ``r`` of a write belongs to stream ``r % streams``
+            and writes hold whole steps (a multiple of ``streams`` rows).
+        device: where the ring, the per-transition tensors and samples live.
         pixels_key: the stacked key (its ``("next", key)`` twin is stored with it).
         chunk: rows compared at once when a large batch is written (bounds temporaries).
+        numpy: pixel work with numpy (default: on CPU); False runs the torch path on CPU too.
     """
 
     def __init__(self, max_size: int, *, frames: int | None = None, stack: int = 4,
-                 pixels_key: str = "pixels", chunk: int = 512) -> None:
-        super().__init__(max_size)
-        self.stack = int(stack)
-        self.ring_size = int(frames) if frames is not None else ring_frames(max_size, stack)
+                 streams: int = 1, device: torch.device | str = "cpu",
+                 pixels_key: str = "pixels", chunk: int = 512, numpy: bool | None = None) -> None:
+        super().__init__(max_size, device=device)
+        self.stack, self.streams = int(stack), int(streams)
+        if self.streams < 1 or self.max_size < self.streams:
+            raise ValueError(f"streams must be in [1, max_size={max_size}], got {streams}")
+        self.ring_size = (int(frames) if frames is not None
+                          else ring_frames(max_size, stack, self.streams))
         if self.ring_size < self.stack + 1:
             raise ValueError(f"a frame ring needs at least {self.stack + 1} frames")
         self.pixels_key = pixels_key
         self.chunk = int(chunk)
+        self._dev = torch.device(self.device)
+        self._ops = Pixels(numpy=self._dev.type == "cpu" if numpy is None else bool(numpy))
         self._ring: torch.Tensor | None = None
+        self._ring_a: Any = None  # the ring as a backend array (same memory)
         self._head = 0  # frames pushed so far
-        self._last: list[int] | None = None  # refs of the last written ``next`` stack
+        # refs of each stream's last ``next`` stack and their slots (backend arrays), None
+        # before the first write: whole-step writes give every stream one at once
+        self._last: Any = None
+        self._last_slots: Any = None
         self._live_lb: float = math.inf  # a lower bound of the refs of live transitions
 
     # ------------------------------------------------------------------ write
@@ -181,8 +147,11 @@ class FrameStackStorage(LazyTensorStorage):
             data = data.unsqueeze(0)
             cursor = torch.as_tensor([int(cursor)])
         n = data.shape[0]
+        if n % self.streams:
+            raise ValueError(f"a write of {n} rows is not whole steps of {self.streams} streams "
+                             f"(row r belongs to stream r % {self.streams})")
         slots = _slots(cursor, n)
-        step = min(self.chunk, self.max_size)
+        step = max(self.streams, min(self.chunk, self.max_size) // self.streams * self.streams)
         if n > step:  # bounded temporaries, and no row written twice within one part
             for start in range(0, n, step):
                 self.set(slots[start:start + step], data[start:start + step],
@@ -195,48 +164,63 @@ class FrameStackStorage(LazyTensorStorage):
         pixels, next_pixels = data.get(key), data.get(nkey)
         if pixels.ndim != 4 or pixels.shape[1] != self.stack:
             raise ValueError(f"{key!r} must be [n, {self.stack}, H, W], got {tuple(pixels.shape)}")
-        p_np, q_np = pixels.numpy(), next_pixels.numpy()
-        prev_stack = None
-        if self._last is not None and self._ring is not None:
-            prev_stack = self._ring.numpy()[np.asarray(self._last) % self.ring_size]
-        refs, pushes, last = plan_pushes(p_np, q_np, self._head, self._last, prev_stack)
-        head = self._head + len(pushes)
-        ref_t = torch.tensor(refs, dtype=torch.long)
-        self._check_live(ref_t, slots, head)
+        if next_pixels.shape != pixels.shape:
+            raise ValueError(f"pixels {tuple(pixels.shape)} and next pixels "
+                             f"{tuple(next_pixels.shape)} differ in shape")
+        ops, n = self._ops, len(pixels)
+        p, q = ops.arr(pixels.to(self._dev)), ops.arr(next_pixels.to(self._dev))
+        last_stack = None
+        if self._last is not None and self._ring_a is not None:
+            last_stack = self._ring_a[self._last_slots]
+        plan = plan_write(p, q, self._head, self.streams, self._last, last_stack, ops,
+                          self.ring_size)
+        pushes, new_min, bad = plan.read_stats()  # the write's one sync
+        if bad:
+            raise ValueError(not_shifted_message(first_bad(p, q, ops)))
+        head = self._head + pushes
+        self._check_live(new_min, n, slots, head)
         if self._ring is None:
             # Touched now (zero_), so the resident size is the bound from the first write on.
-            self._ring = torch.empty((self.ring_size, *pixels.shape[-2:]),
-                                     dtype=pixels.dtype).zero_()
-        ring = self._ring.numpy()
-        ctr, rows, cols = (np.asarray(x) for x in zip(*pushes, strict=True))
-        from_p, from_q = cols < self.stack, cols == self.stack
-        ring[ctr[from_p] % self.ring_size] = p_np[rows[from_p], cols[from_p]]
-        ring[ctr[from_q] % self.ring_size] = q_np[rows[from_q], -1]
-        self._head, self._last = head, last
-        out = data.exclude(key, nkey)
-        out.set(REFS_KEY, ref_t)
+            self._set_ring(torch.empty((self.ring_size, *pixels.shape[-2:]), dtype=pixels.dtype,
+                                       device=self._dev).zero_())
+        if ops.numpy:  # the two sources, without a concatenated copy
+            ops.scatter(self._ring_a, plan.slots[:, :-1], p, plan.pushed[:, :-1], pushes - n)
+            ops.scatter(self._ring_a, plan.slots[:, -1:], q[:, -1:], plan.pushed[:, -1:], n)
+        else:  # one index_copy_ (a kernel launch matters more than a small copy)
+            ops.scatter(self._ring_a, plan.slots, torch.cat([p, q[:, -1:]], 1), plan.pushed,
+                        pushes)
+        self._head = head
+        # views of the fresh plan arrays, never written again
+        self._last, self._last_slots = plan.refs[-self.streams:, 1:], plan.slots[-self.streams:, 1:]
+        # on the storage device already (TensorDict writes a device-less batch slower)
+        out = data.exclude(key, nkey).to(self._dev)
+        out.set(REFS_KEY, ops.tensor(plan.refs))
         return out
 
-    def _check_live(self, refs: torch.Tensor, slots: torch.Tensor, head: int) -> None:
+    def _set_ring(self, ring: torch.Tensor | None) -> None:
+        self._ring = ring
+        self._ring_a = None if ring is None else self._ops.arr(ring)
+
+    def _check_live(self, new_min: int, n: int, slots: torch.Tensor, head: int) -> None:
         """Raise unless every transition live after this write keeps its frames."""
         floor = head - self.ring_size  # frames with a lower counter are overwritten
-        new_min = int(refs[:, 0].min())  # refs grow along a row: column 0 is the oldest
         if new_min < floor:
             raise FrameRingOverflow(
-                f"a write of {len(refs)} transitions pushes more frames than the ring of "
+                f"a write of {n} transitions pushes more frames than the ring of "
                 f"{self.ring_size} holds; use a larger `frames`")
         if floor > self._live_lb and self.initialized and len(self) > 0:
             size = len(self)
             keep = torch.ones(size, dtype=torch.bool)
             keep[slots[slots < size]] = False  # rows overwritten by this write
-            old = self._storage.get(REFS_KEY)[:size, 0][keep]
-            exact = int(old.min()) if len(old) else math.inf
+            old = self._storage.get(REFS_KEY)[:size, 0]
+            exact = (int(torch.where(keep.to(old.device), old, old.new_tensor(2**62)).min())
+                     if keep.any() else math.inf)
             if exact < floor:
-                need = ring_frames(self.max_size, self.stack)
+                need = ring_frames(self.max_size, self.stack, self.streams)
                 raise FrameRingOverflow(
                     f"the frame ring ({self.ring_size} frames) is too small: this write would "
-                    f"overwrite frames of live transitions (needs >= {need} for env data in "
-                    "FIFO order)")
+                    f"overwrite frames of live transitions (needs >= {need} for env data of "
+                    f"{self.streams} stream(s) in FIFO order)")
             self._live_lb = exact
         self._live_lb = min(self._live_lb, new_min)
 
@@ -246,19 +230,17 @@ class FrameStackStorage(LazyTensorStorage):
         refs = td.get(REFS_KEY)
         if refs.numel() and int(refs.min()) < self._head - self.ring_size:
             raise FrameRingOverflow("a stored transition lost its frames (ring overwritten)")
-        assert self._ring is not None
-        # numpy's gather: a plain copy per frame, no thread pool (torch's index kernel is 10-100x
-        # slower here for [n, 84, 84] uint8 rows, worst with 2 threads on a busy 2-core machine).
+        assert self._ring_a is not None
         # Two contiguous gathers, not two views of one: the stacks must not share memory.
-        ring, slots = self._ring.numpy(), (refs % self.ring_size).numpy()
+        ops, slots = self._ops, self._ops.arr(refs % self.ring_size)
         out = td.exclude(REFS_KEY)
-        out.set(self.pixels_key, torch.from_numpy(ring[slots[..., : self.stack]]))
-        out.set(("next", self.pixels_key), torch.from_numpy(ring[slots[..., 1:]]))
+        out.set(self.pixels_key, ops.tensor(self._ring_a[slots[..., : self.stack]]))
+        out.set(("next", self.pixels_key), ops.tensor(self._ring_a[slots[..., 1:]]))
         return out
 
     def _empty(self) -> None:
         super()._empty()
-        self._head, self._last, self._live_lb = 0, None, math.inf
+        self._head, self._live_lb, self._last, self._last_slots = 0, math.inf, None, None
 
     @property
     def frames_used(self) -> int:
@@ -273,22 +255,36 @@ class FrameStackStorage(LazyTensorStorage):
 
     # ------------------------------------------------------------------ checkpoints
     def _frame_meta(self) -> dict[str, Any]:
-        return {"head": self._head, "last": self._last, "live_lb": self._live_lb,
-                "ring_size": self.ring_size, "stack": self.stack}
+        rows = None if self._last is None else self._ops.tensor(self._last).tolist()
+        # one stream keeps the original layout (a list or None), so old checkpoints still load
+        last = rows[0] if rows is not None and self.streams == 1 else rows
+        return {"head": self._head, "last": last, "live_lb": self._live_lb,
+                "ring_size": self.ring_size, "stack": self.stack, "streams": self.streams}
 
     def _set_frame_meta(self, meta: dict[str, Any], ring: Any) -> None:
-        if int(meta["ring_size"]) != self.ring_size or int(meta["stack"]) != self.stack:
+        streams = int(meta.get("streams", 1))
+        if (int(meta["ring_size"]) != self.ring_size or int(meta["stack"]) != self.stack
+                or streams != self.streams):
             raise ValueError(f"frame ring of {meta['ring_size']} frames x stack {meta['stack']} "
-                             f"cannot load into {self.ring_size} x {self.stack}")
-        self._head, self._last = int(meta["head"]), meta["last"]
+                             f"x {streams} stream(s) cannot load into {self.ring_size} x "
+                             f"{self.stack} x {self.streams}")
+        self._head = int(meta["head"])
         self._live_lb = float(meta["live_lb"])
+        last = meta["last"]
+        if last is None:
+            self._last = self._last_slots = None
+        else:
+            rows = [last] if self.streams == 1 else last
+            self._last = self._ops.arr(torch.tensor(rows, dtype=torch.long, device=self._dev))
+            self._last_slots = self._last % self.ring_size
         if ring is None:
-            self._ring = None
+            self._set_ring(None)
             return
-        dtype = (ring.dtype if isinstance(ring, torch.Tensor)
-                 else torch.from_numpy(np.empty(0, ring.dtype)).dtype)
-        self._ring = torch.empty((self.ring_size, *ring.shape[1:]), dtype=dtype).zero_()
-        self._ring.numpy()[: len(ring)] = ring.numpy() if isinstance(ring, torch.Tensor) else ring
+        ring_t = ring if isinstance(ring, torch.Tensor) else torch.from_numpy(np.array(ring))
+        self._set_ring(torch.empty((self.ring_size, *ring_t.shape[1:]), dtype=ring_t.dtype,
+                                   device=self._dev).zero_())
+        assert self._ring is not None
+        self._ring[: len(ring_t)] = ring_t.to(self._dev)
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
@@ -298,6 +294,9 @@ class FrameStackStorage(LazyTensorStorage):
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         super().load_state_dict(state_dict)
+        storage: Any = self._storage  # type: ignore[has-type]  # TorchRL leaves it untyped
+        if storage is not None:  # TorchRL builds a fresh storage on the CPU
+            self._storage = storage.to(self._dev)
         self._set_frame_meta(state_dict["frame_ring"]["meta"], state_dict["frame_ring"]["ring"])
 
     def dumps(self, path: str | Path) -> None:
@@ -306,7 +305,7 @@ class FrameStackStorage(LazyTensorStorage):
         path = Path(path)
         torch.save(self._frame_meta(), path / "frame_ring_meta.pt")
         if self._ring is not None:
-            np.save(path / "frame_ring.npy", self._ring[: self.frames_used].numpy())
+            np.save(path / "frame_ring.npy", self._ring[: self.frames_used].cpu().numpy())
 
     def loads(self, path: str | Path) -> None:
         super().loads(path)

@@ -17,7 +17,7 @@ import torch
 from tensordict import TensorDict
 from tqdm import tqdm
 
-from memrl.data.demos import EnvCfg, save_demos
+from memrl.data.demos import DemoDatasetError, EnvCfg, example_demos_path, load_demos, save_demos
 from memrl.data.transitions import to_transitions
 from memrl.envs.config import LaneChangeConfig
 from memrl.envs.lane_change import LaneChangeEnv
@@ -25,8 +25,6 @@ from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
 from memrl.modules.policy import DrivingPolicy, FrameStack, PerturbedPolicy, PolicyModule, StopRecording
 
 log = logging.getLogger(__name__)
-
-__all__ = ["StopRecording"]  # re-exported: defined beside the policies that raise it
 
 
 @dataclass
@@ -227,3 +225,31 @@ def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.Pat
         **dict(extra or {}),
     }
     return save_demos(rec.transitions, path, metadata, overwrite=overwrite), rec
+
+
+def ensure_example_demos(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None, *,
+                         episodes: int = 10, seed: int = 0, overwrite: bool = False) -> Path:
+    """Path of the cached example dataset made by the scripted driver; records it if needed.
+
+    The dataset is recorded with ``env_cfg`` (keeping stable episodes only) and cached under
+    ``data_dir`` by env-config hash. A cached dataset that fails :func:`load_demos` is
+    recorded again.
+    """
+    from memrl.modules.scripted import ScriptedDriver
+
+    path = example_demos_path(env_cfg, data_dir)
+    if path.exists() and not overwrite:
+        try:
+            load_demos(path, env_cfg)
+            return path
+        except DemoDatasetError as e:
+            log.warning("cached example dataset is unusable, recording it again: %s", e)
+    log.info("recording the example dataset (%d scripted episodes) into %s", episodes, path)
+    saved, rec = record_to_dataset(
+        env_cfg, ScriptedDriver(), path, episodes=episodes, seed=seed, keep_stable=True,
+        source="scripted", overwrite=True,
+        extra={"policy": {"_target_": "memrl.modules.scripted.ScriptedDriver"}, "example": True})
+    if saved is None:
+        raise RuntimeError(f"the scripted driver kept no stable episode out of {episodes}; "
+                           f"recorded: {rec.stats()['recorded']}")
+    return path

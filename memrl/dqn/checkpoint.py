@@ -16,16 +16,17 @@ from omegaconf import DictConfig, OmegaConf
 from memrl.errors import UserError
 
 RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
-                "checkpoint_every", "log_every", "hydra")
+                "checkpoint_every", "log_every", "hydra", "device")
 """Config keys that may differ between a run and its resumption (outputs and budgets)."""
 
 
 LEGACY_VALUES: dict[str, Any] = {
-    "agent": {"precision": "float32", "overlap": False},
+    "agent": {"precision": "float32", "overlap": False, "exploration": "epsilon", "ez_mu": 2.0,
+              "ez_max_duration": 50, "temperature_start": 1.0, "temperature_end": 0.05},
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
-            "initial_curvature": 0.0, "frame_stack": 1},
+            "initial_curvature": 0.0, "frame_stack": 1, "num_envs": 1},
     "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
-                        "keep_best": True}},
+                        "keep_best": True}, "stage2": {"demo_fraction": 0.0}},
 }
 """Keys added to the config after checkpoints were first written, at the value that does what
 the versions before them did: a checkpoint without a key is compared as if it held this
@@ -53,14 +54,19 @@ class CheckpointError(UserError, ValueError):
 
 
 def rng_state() -> dict[str, Any]:
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
-            "python": random.getstate()}
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+             "python": random.getstate()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():  # a CPU resume of a CUDA run skips it
+        torch.cuda.set_rng_state_all(state["cuda"])
 
 
 def comparable(cfg: DictConfig) -> dict[str, Any]:
@@ -165,7 +171,7 @@ def load_state(ckpt: Path, cfg: DictConfig | None = None) -> dict[str, Any]:
     refuse a checkpoint made under a different config."""
     check_manifest(ckpt)
     try:
-        state = torch.load(ckpt / "state.pt", weights_only=False)
+        state = torch.load(ckpt / "state.pt", weights_only=False, map_location="cpu")
     except Exception as err:  # torch raises several types for a truncated or foreign file
         raise CheckpointError(f"{ckpt / 'state.pt'}: unreadable checkpoint ({err})") from err
     if cfg is not None:

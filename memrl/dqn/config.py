@@ -14,6 +14,7 @@ from omegaconf import DictConfig
 from memrl.errors import UserError
 
 PRECISIONS = ("auto", "float32", "bfloat16")
+EXPLORATIONS = ("epsilon", "ez_greedy", "speed_only", "boltzmann")  # memrl/dqn/exploration.py
 
 
 @dataclass
@@ -40,6 +41,18 @@ class AgentConfig:
     """Final epsilon."""
     eps_decay_frames: int = 50_000
     """Env steps over which epsilon decays linearly from eps_start to eps_end."""
+    exploration: str = "epsilon"
+    """How the acting policy explores (:mod:`memrl.dqn.exploration`): ``epsilon`` (the paper's
+    epsilon-greedy), ``ez_greedy`` (a random action repeated for a zeta-distributed duration),
+    ``speed_only`` (random actions change only the speed) or ``boltzmann`` (softmax over Q)."""
+    ez_mu: float = 2.0
+    """``ez_greedy``: exponent of the duration distribution P(n) ~ n^-mu."""
+    ez_max_duration: int = 50
+    """``ez_greedy``: longest repeat [action steps]."""
+    temperature_start: float = 1.0
+    """``boltzmann``: initial temperature [Q units], annealed like epsilon over eps_decay_frames."""
+    temperature_end: float = 0.05
+    """``boltzmann``: final temperature [Q units]."""
     grad_clip: float = 10.0
     """Max global gradient norm (0: no clipping)."""
     pool_first: bool = True
@@ -132,6 +145,9 @@ class Stage2Config:
     """Final epsilon."""
     eps_decay_frames: int = 50_000
     """Env steps of the linear decay."""
+    demo_fraction: float = 0.0
+    """Share of stage 2's buffer (and of each stratified batch) that the prior knowledge keeps
+    holding, as in mode A (0: none, the paper's B: stage 2 trains as Default)."""
 
 
 @dataclass
@@ -173,6 +189,12 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(0 <= a.eps_end <= a.eps_start <= 1, "agent.eps_start",
           f"need 0 <= eps_end <= eps_start <= 1, got {a.eps_start} -> {a.eps_end}")
     _need(a.eps_decay_frames >= 1, "agent.eps_decay_frames", "must be >= 1")
+    _need(str(a.get("exploration", "epsilon")) in EXPLORATIONS, "agent.exploration",
+          f"expected one of {', '.join(EXPLORATIONS)}, got {a.get('exploration')!r}")
+    _need(a.get("ez_mu", 2.0) > 0, "agent.ez_mu", f"must be > 0, got {a.get('ez_mu')}")
+    _need(a.get("ez_max_duration", 50) >= 1, "agent.ez_max_duration", "must be >= 1")
+    _need(0 < a.get("temperature_end", 0.05) <= a.get("temperature_start", 1.0),
+          "agent.temperature_start", "need 0 < temperature_end <= temperature_start")
     _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity",
           f"must be >= agent.batch_size ({a.batch_size}), got {cfg.buffer.capacity}")
     _need(m.name in ("default", "A", "B"), "mode.name", f"expected default, A or B, got {m.name!r}")
@@ -192,5 +214,7 @@ def check_train_config(cfg: DictConfig) -> None:
     s2 = m.stage2
     _need(0 <= s2.eps_end <= s2.eps_start <= 1, "mode.stage2.eps_start",
           "need 0 <= eps_end <= eps_start <= 1")
+    _need(0 <= s2.demo_fraction < 1, "mode.stage2.demo_fraction",
+          f"must be in [0, 1), got {s2.demo_fraction}")
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")

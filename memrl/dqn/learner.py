@@ -7,12 +7,11 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Composite
-from torchrl.modules import EGreedyModule, QValueActor
+from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate
 
 from memrl.dqn.config import AgentConfig
-from memrl.envs.vehicles import N_ACTIONS
+from memrl.dqn.exploration import AlwaysExploring, make_exploration  # noqa: F401 (re-export)
 from memrl.modules.qnet import QNetwork, make_q_actor
 
 
@@ -40,14 +39,15 @@ def native_bf16() -> bool:
         return False
 
 
-def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32)) -> bool:
+def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32),
+                 device: torch.device | str = "cpu") -> bool:
     """``torch.compile`` the network's forward in place, then run it once per batch size, with
     and without gradients; on any failure (no C++ compiler, an unsupported op) warn and put the
     eager forward back. Returns whether the network stays compiled."""
     try:
         qnet.compile(dynamic=False)
         for n in batch_sizes:
-            x = torch.zeros(n, 4, 84, 84, dtype=torch.uint8)
+            x = torch.zeros(n, 4, 84, 84, dtype=torch.uint8, device=device)
             qnet(x).sum().backward()
             with torch.no_grad():
                 qnet(x)
@@ -69,17 +69,21 @@ class Learner:
     update multiplies it by 0.5.
     """
 
-    def __init__(self, cfg: AgentConfig | Any) -> None:
-        self.cfg = cfg
+    def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu") -> None:
+        self.cfg, self.device = cfg, torch.device(device)
         self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)))
+        self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
-        self.qnet.conv_dtype = conv_dtype(str(_option(cfg, "precision", "float32")))
+        precision = str(_option(cfg, "precision", "float32"))
+        # bf16 autocast is a CPU speed-up (oneDNN); on CUDA `auto` keeps float32
+        self.qnet.conv_dtype = conv_dtype(precision) if self.device.type == "cpu" or \
+            precision != "auto" else None
         if _option(cfg, "channels_last", False):
             # Before DQNLoss copies the parameters: online and target weights, and Adam's
             # moments, all stay channels_last (NHWC convs and pools run faster on CPU).
             self.qnet.to(memory_format=torch.channels_last)
         self.compiled = bool(_option(cfg, "compile", False)) and compile_qnet(
-            self.qnet, (1, int(cfg.batch_size)))
+            self.qnet, (1, int(cfg.batch_size)), self.device)
         self.loss_module = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                                    double_dqn=True, action_space="categorical")
         self.loss_module.make_value_estimator(gamma=cfg.gamma)
@@ -167,30 +171,3 @@ class Learner:
     def reset_optimizer(self) -> None:
         """Fresh Adam moments (mode B stage 2 starts a new optimisation)."""
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)
-
-
-class AlwaysExploring(EGreedyModule):
-    """TorchRL's annealed epsilon-greedy, explorative whatever the process-wide exploration type.
-
-    ``EGreedyModule`` acts greedily while ``exploration_type()`` is deterministic, a process
-    global that every TorchRL loss sets while it runs: with the learner updating in another
-    thread (``agent.overlap``), exploration would switch off at random moments. Same draws
-    (``torch.rand``, then the spec's ``rand``) as the parent's explorative branch.
-    """
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(self.action_key)
-        explore = torch.rand(tensordict.shape, device=self.eps.device) < self.eps
-        explore = explore.reshape(explore.shape + (1,) * (action.ndim - explore.ndim))
-        spec = self.spec[self.action_key] if isinstance(self.spec, Composite) else self.spec
-        spec = spec if spec.shape == action.shape else spec.expand(action.shape)
-        tensordict.set(self.action_key, torch.where(explore, spec.rand().to(action.device), action))
-        return tensordict
-
-
-def make_exploration(eps_start: float, eps_end: float, decay_frames: int) -> EGreedyModule:
-    """TorchRL's linearly annealed epsilon-greedy module over the 9 actions."""
-    from torchrl.data import Categorical
-
-    return AlwaysExploring(Categorical(N_ACTIONS, dtype=torch.int64), eps_init=eps_start,
-                           eps_end=eps_end, annealing_num_steps=decay_frames)

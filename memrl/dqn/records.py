@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import csv
 import logging
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from memrl.csv_table import CsvTable  # noqa: F401 (re-export)
 from memrl.loggers import HeldLog
 
 log = logging.getLogger(__name__)
@@ -21,33 +21,6 @@ UPDATE_FIELDS = ("updates", "env_steps", "stage", "loss", "mean_q", "demo_share"
                  "demo_count_min", "demo_count_max", "updates_per_s", "frames_per_s", "epsilon")
 """Columns of ``updates.csv``, one row per ``log_every`` updates: means over the interval, and
 the min/max demo count of the interval's batches (equal in stratified mode A)."""
-
-
-class CsvTable:
-    """An append-only CSV with a header; on resume it is cut back to the checkpoint's rows."""
-
-    def __init__(self, path: Path, fields: Sequence[str]) -> None:
-        self.path, self.fields = path, tuple(fields)
-        if not path.exists():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with path.open("w", newline="") as f:
-                csv.writer(f).writerow(self.fields)
-
-    def append(self, row: dict[str, Any]) -> None:
-        with self.path.open("a", newline="") as f:
-            csv.DictWriter(f, self.fields).writerow(row)
-
-    def rows(self) -> list[dict[str, str]]:
-        with self.path.open(newline="") as f:
-            return list(csv.DictReader(f))
-
-    def truncate(self, keep: int) -> None:
-        """Keep the header and the first ``keep`` rows (work after a checkpoint is redone)."""
-        rows = self.rows()[:keep]
-        with self.path.open("w", newline="") as f:
-            writer = csv.DictWriter(f, self.fields)
-            writer.writeheader()
-            writer.writerows(rows)
 
 
 EPISODE_METRICS = ("return", "survival_steps", "reached_target", "collided", "epsilon")

@@ -79,23 +79,25 @@ def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
 
 
 def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int], batch: int = 10, *,
-                 device: torch.device | str = "cpu") -> dict[str, int]:
+                 device: torch.device | str | None = None) -> dict[str, int]:
     """The behaviour itself: the greedy agent drives one non-goal episode among 0-5
     constant-speed cars (the protocol's rules on the run's env) per reset seed; returns the
     counts of ``survived``, ``reached`` (the target lane) and ``both`` in the same episode.
 
-    The episodes run on the batched engine, all at once on ``device`` (``batch``: envs in
-    lockstep on the gym path, used only when the engine cannot draw the env's frames)."""
+    The episodes run on the batched engine, all at once on ``device`` (None: the network's
+    device; ``batch``: envs in lockstep on the gym path, used only when the engine cannot draw
+    the env's frames)."""
     protocol = ProtocolConfig(episodes=len(seeds), initial_lanes=["non_goal"],
                               duration=int(env_cfg.get("duration", 300)))  # the run's length
     job = Job(protocol_env(env_cfg, protocol, "non_goal"), "non_goal", list(enumerate(seeds)))
+    device = device if device is not None else next(qnet.parameters()).device
     records = run_jobs(GreedyActor(qnet), [job], batch=batch, device=device).records  # type: ignore[arg-type]
     return {"survived": sum(r.survived for r in records), "reached": sum(r.goal for r in records),
             "both": sum(r.survived and r.goal for r in records)}
 
 
 def drive_check(qnet: torch.nn.Module, env_cfg: Any, episodes: int, seed: int = 0,
-                batch: int = 10, *, device: torch.device | str = "cpu") -> dict[str, int]:
+                batch: int = 10, *, device: torch.device | str | None = None) -> dict[str, int]:
     """:func:`drive_counts` over ``episodes`` scenes of their own seed domain (``stage1``),
     apart from the training, periodic and Table III scenes, so choosing weights by it does
     not tune on the test scenes."""
@@ -123,3 +125,65 @@ def stop_reason(cfg: Stage1Config, progress: Stage1Progress) -> str:
         if both >= cfg.drive_target * n:
             return f"behaviour: {both}/{n} drive episodes survived and reached >= {cfg.drive_target}"
     return ""
+
+
+class Stage1Checks:
+    """Mode B stage 1's periodic check: loss, held-out agreement, optional behaviour drives
+    (keeping the weights that drove best), and the stop decision.
+
+    Args:
+        cfg: the ``mode.stage1`` node.
+        env_cfg: the run's env config (drives).
+        held_out: demos kept out of the stage-1 buffer.
+        progress: the run's :class:`Stage1Progress` (updated in place).
+    """
+
+    def __init__(self, cfg: Any, env_cfg: Any, held_out: TensorDictBase,
+                 progress: Stage1Progress) -> None:
+        self.cfg, self.env_cfg, self.held_out, self.progress = cfg, env_cfg, held_out, progress
+        self.best: dict[str, torch.Tensor] | None = None
+        """With drives: the loss module's weights that drove best so far."""
+
+    def due(self) -> bool:
+        p, cfg = self.progress, self.cfg
+        return p.updates % int(cfg.check_every) == 0 or p.updates >= int(cfg.max_updates)
+
+    def check(self, qnet: torch.nn.Module, loss_module: torch.nn.Module,
+              recent_losses: list[float]) -> dict[str, float]:
+        """Measure now, decide whether to stop (``progress.stop_reason``); the logger values."""
+        import logging
+        import time
+
+        p, cfg = self.progress, self.cfg
+        p.losses.append(float(sum(recent_losses) / max(len(recent_losses), 1)))
+        p.agreements.append(agreement(qnet, self.held_out))
+        p.parts.append(agreement_parts(qnet, self.held_out))
+        drove = int(cfg.drive_episodes) > 0
+        if drove:
+            start = time.perf_counter()
+            counts = drive_check(qnet, self.env_cfg, int(cfg.drive_episodes), int(cfg.drive_seed))
+            p.drive_s += time.perf_counter() - start
+            p.drives.append({"updates": p.updates, **counts})
+            best = next((d["both"] for d in p.drives if d["updates"] == p.best_updates), -1)
+            if bool(cfg.keep_best) and counts["both"] >= best:
+                p.best_updates = p.updates
+                self.best = {k: v.detach().clone() for k, v in loss_module.state_dict().items()}
+        p.stop_reason = stop_reason(cfg, p)
+        logging.getLogger(__name__).info(
+            "stage 1: %d updates, loss %.4f, agreement %.3f (%s)%s%s", p.updates, p.losses[-1],
+            p.agreements[-1], ", ".join(f"{k} {v:.3f}" for k, v in p.parts[-1].items()),
+            f", drive {p.drives[-1]}" if drove else "",
+            f" -> stop: {p.stop_reason}" if p.stop_reason else "")
+        return {"check_loss": p.losses[-1], "agreement": p.agreements[-1],
+                **{f"agreement_{k}": v for k, v in p.parts[-1].items()},
+                **({f"drive_{k}": p.drives[-1][k] for k in ("survived", "reached", "both")}
+                   if drove else {})}
+
+    def finish(self, loss_module: torch.nn.Module) -> None:
+        """Stage 1 is over: put back the weights that drove best (when not the last ones)."""
+        p = self.progress
+        p.done = True
+        if self.best is not None and p.best_updates != p.updates:
+            loss_module.load_state_dict(self.best)
+            p.stop_reason += f"; weights of update {p.best_updates} (drove best)"
+        self.best = None

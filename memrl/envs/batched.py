@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from gymnasium.utils.seeding import np_random
 
+from memrl.envs.batched_state import engine_state, load_engine_state
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
@@ -238,6 +239,17 @@ class BatchedLaneChange:
             reward = reward + weight * comps[:, i].to(torch.float64)
         return StepOut(reward, comps, self.crashed.clone(), self.steps >= self.cfg.duration,
                        self.crashed.clone(), on_target, self.reached.clone())
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything that determines the engine's future (copies; tensors on its device): car
+        states, flags, targets, policies, steps, the frame ring, learned cars' frame stacks and
+        every env's generator state. ``torch.save`` it to checkpoint mid-episode."""
+        return engine_state(self)
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue exactly from ``state`` (of :meth:`state_dict`), moved to this engine's device;
+        the engine must have the same config, N and frame stack (else :class:`BatchedEnvError`)."""
+        load_engine_state(self, state)
 
     def info(self) -> dict[str, torch.Tensor]:
         """The reference env's ``info`` of the current state, per env: speed [m/s], curvature

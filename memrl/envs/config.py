@@ -159,6 +159,10 @@ class LaneChangeConfig:
     """Frames in the gym observation ``[frame_stack, H, W]`` (oldest first; after a reset the
     first frame repeated): 4 is the paper's observation, for gym users (SB3, CleanRL). The
     TorchRL pipeline (``make_env``) stacks frames itself and leaves this at 1."""
+    num_envs: int = 1
+    """Envs the trainer steps together: 1 steps this highway-env env (the reference); N > 1
+    the batched engine (:mod:`memrl.envs.batched`, the same task). A gym env is one env
+    whatever this says (``gymnasium.make_vec`` takes ``num_envs`` itself)."""
 
 
 class EnvConfigError(UserError, ValueError):
@@ -262,6 +266,9 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
     stack = cfg.frame_stack
     _check(isinstance(stack, int) and not isinstance(stack, bool) and stack >= 1,
            "frame_stack", f"need an int >= 1, got {cfg.frame_stack!r}")
+    n = cfg.num_envs
+    _check(isinstance(n, int) and not isinstance(n, bool) and n >= 1,
+           "num_envs", f"need an int >= 1, got {cfg.num_envs!r}")
     return cfg
 
 

@@ -7,10 +7,11 @@ its cars at once (one batched call per step), so that a controller backed by a n
 
 from __future__ import annotations
 
+import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -70,7 +71,15 @@ def make_opponents(cfg: OpponentConfig) -> Opponents:
         if kind == "constant":
             controllers.append(ConstantSpeedController())
         else:
-            from memrl.modules.opponents import LearnedCarController  # torch networks: load lazily
-
-            controllers.append(LearnedCarController(cfg.pool, epsilon=cfg.epsilon))
+            controllers.append(_entry_point(LEARNED_CONTROLLER)(cfg.pool, epsilon=cfg.epsilon))
     return Opponents(controllers)
+
+
+LEARNED_CONTROLLER = "memrl.modules.opponents:LearnedCarController"
+"""Entry point of the learned cars' controller (as gymnasium registers envs): it lives with the
+networks in ``memrl.modules``, which build on this package, so it is found by name, not imported."""
+
+
+def _entry_point(name: str) -> Any:
+    module, attr = name.split(":")
+    return getattr(importlib.import_module(module), attr)

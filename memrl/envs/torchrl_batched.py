@@ -53,6 +53,13 @@ class BatchedLaneChangeEnv(EnvBase):
         """Env i's next reset draws the scene of seed ``seed + i`` (as ``SyncVectorEnv``)."""
         self._seeds = None if seed is None else [int(seed) + i for i in range(self.engine.num_envs)]
 
+    def seed_next_reset(self, seeds: list[int | None]) -> None:
+        """Seeds of the next reset, one per env (None: that env continues its generator); the
+        trainer gives every episode the seed of its index so that scenes do not depend on N."""
+        if len(seeds) != self.engine.num_envs:
+            raise ValueError(f"{len(seeds)} seeds for {self.engine.num_envs} envs")
+        self._seeds = list(seeds)
+
     def _reset(self, tensordict: TensorDictBase | None = None, **_: Any) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)
         if mask is None:

@@ -20,8 +20,8 @@ import torch
 from memrl.envs.batched import BatchedLaneChange, resolve_device
 from memrl.envs.config import EnvConfigError, env_config_dict, validate_env_config
 from memrl.envs.vehicles import IDLE
+from memrl.evaluation.jobs import Actor, Job, JobResult, torch_threads
 from memrl.evaluation.protocol import EpisodeRecord
-from memrl.evaluation.runner import Actor, Job, JobResult, torch_threads
 
 __all__ = ["engine_can_run", "resolve_device", "run_jobs_on_engine", "torch_threads"]
 

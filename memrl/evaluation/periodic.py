@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from memrl.dqn.records import CsvTable
+from memrl.csv_table import CsvTable
 from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import INITIAL_LANES, ProtocolConfig, protocol_env, scenario_seeds, score
@@ -33,7 +33,7 @@ PERIODIC_CSV = "eval_periodic.csv"
 def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, episodes: int = 10,
                   seed: int = 0, *, initial_lanes: Sequence[str] = INITIAL_LANES,
                   duration: int | None = None, batch: int = 10,
-                  device: torch.device | str = "cpu") -> dict[str, float]:
+                  device: torch.device | str | None = None) -> dict[str, float]:
     """Greedy episodes of ``qnet`` in this process; returns the metrics of one CSV row.
 
     Args:
@@ -46,7 +46,7 @@ def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, epis
         duration: steps per episode (None: the env config's ``duration``).
         batch: episodes stepped together on gym envs (the greedy network runs on the batched
             engine instead, all episodes at once).
-        device: where the engine and the network copy run.
+        device: where the engine and the network copy run (None: the network's device).
 
     Returns:
         ``survival_<lane>``, ``goal_<lane>`` (per 100 episodes), ``return_<lane>``,
@@ -58,6 +58,7 @@ def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, epis
     seeds = list(enumerate(scenario_seeds(seed, episodes, domain="periodic")))
     jobs = [Job(protocol_env(env, protocol, lane), lane, seeds) for lane in initial_lanes]  # type: ignore[arg-type]
     start = time.perf_counter()
+    device = device if device is not None else next(qnet.parameters()).device
     records = run_jobs(GreedyActor(qnet), jobs, workers=1, batch=batch,  # type: ignore[arg-type]
                        device=device).records
     out: dict[str, float] = {}
@@ -77,11 +78,12 @@ class PeriodicEvaluation:
         env_cfg: the training env config.
         run_dir: the run folder; rows go to ``eval_periodic.csv`` there.
         logger: a TorchRL logger (``log_scalar``) or None.
-        device: where the evaluation episodes run (the batched engine and the network copy).
+        device: where the evaluation episodes run (the batched engine and the network copy;
+            None: the network's device).
     """
 
     def __init__(self, cfg: Mapping[str, Any] | DictConfig | None, env_cfg: Mapping[str, Any] | DictConfig,
-                 run_dir: Path, logger: Any | None = None, device: torch.device | str = "cpu") -> None:
+                 run_dir: Path, logger: Any | None = None, device: torch.device | str | None = None) -> None:
         values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg or {})
         self.cfg = PeriodicEvalConfig(**values)  # type: ignore[arg-type]
         if self.cfg.every < 0 or self.cfg.episodes < 1:

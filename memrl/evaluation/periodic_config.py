@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from memrl.evaluation.protocol import INITIAL_LANES
-from memrl.schemas import spec
+from memrl.fields import spec
 
 
 @dataclass

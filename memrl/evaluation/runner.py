@@ -18,78 +18,25 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing as mp
-from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import AbstractContextManager, contextmanager
-from dataclasses import dataclass, field
-from typing import Any
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_jobs_on_engine
+from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
 from memrl.modules.policy import FrameStack, StopRecording
 
-__all__ = ["Actor", "FrameStack", "Job", "JobResult", "run_job", "run_jobs", "split", "torch_threads"]
+__all__ = ["Actor", "FrameStack", "Job", "JobResult", "StepHook", "run_job", "run_jobs", "split",
+           "torch_threads"]
 
 log = logging.getLogger(__name__)
-
-StepHook = Callable[[LaneChangeEnv, np.ndarray, int | None, EpisodeRecord | None], None]
-"""Called after each reset (action None) and each step (the action taken) with the env and
-the stacked pixels; the last call of an episode also gets its finished record."""
-
-
-class Actor(ABC):
-    """Chooses the actions of several episodes stepped together (slot = place in the batch)."""
-
-    batchable: bool = True
-    """May drive several envs in lockstep."""
-    parallel: bool = True
-    """May run in worker processes (picklable, opens no window)."""
-    needs_render: bool = False
-    """Needs ``render_mode='rgb_array'`` (full-scene pictures)."""
-    tensor_policy: bool = False
-    """Acts from a batch of pixels alone (:meth:`act_pixels`, no env object, no per-episode
-    state): :func:`run_jobs` then runs it on the batched engine."""
-
-    def begin(self, slot: int, env: LaneChangeEnv, seed: int) -> None:  # noqa: B027
-        """A new episode starts in ``slot`` (after the env's reset with ``seed``)."""
-
-    @abstractmethod
-    def act(self, slots: Sequence[int], envs: Sequence[LaneChangeEnv], pixels: np.ndarray) -> np.ndarray:
-        """Actions (int array ``[B]``) for the running ``slots``; ``pixels`` uint8 ``[B, 4, H, W]``."""
-
-    def act_pixels(self, pixels: torch.Tensor) -> torch.Tensor:
-        """Actions (int64 ``[B]``) of uint8 stacks ``[B, 4, H, W]`` (``tensor_policy`` actors)."""
-        raise NotImplementedError(f"{type(self).__name__} acts through the env (act)")
-
-    def to(self, device: torch.device | str) -> Actor:  # noqa: B027
-        """Run on ``device`` from now on (``tensor_policy`` actors); returns self."""
-        return self
-
-    def close(self) -> None:  # noqa: B027
-        """Release windows or other resources."""
-
-
-@dataclass
-class Job:
-    """Episodes of one initial-lane setting for one process."""
-
-    env: dict[str, Any]
-    """Full env config (the protocol's rules applied)."""
-    initial_lane: str
-    episodes: list[tuple[int, int]]
-    """(episode index, reset seed) pairs."""
-
-
-@dataclass
-class JobResult:
-    records: list[EpisodeRecord] = field(default_factory=list)
-    stopped_early: bool = False
-    """A human pressed Esc: the episode under way was dropped, the finished ones kept."""
 
 
 @dataclass
@@ -100,17 +47,6 @@ class _Slot:
     start_lane: int
     vehicles: int
     ret: float = 0.0
-
-
-@contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """torch on ``n`` CPU threads for the block (the previous count restored after)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def one_thread() -> AbstractContextManager[None]:
@@ -211,8 +147,6 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
         engine: force (True) or forbid (False) the engine path; None: the engine for
             ``tensor_policy`` actors on jobs it can run (:func:`engine_can_run`).
     """
-    from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_jobs_on_engine
-
     total = sum(len(j.episodes) for j in jobs)
     bar = tqdm(total=total, desc=desc, unit="ep", disable=not progress, dynamic_ncols=True)
     out = JobResult()

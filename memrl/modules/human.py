@@ -23,10 +23,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from memrl.data.recording import StopRecording
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import action_index
-from memrl.modules.policy import DrivingPolicy
+from memrl.modules.policy import DrivingPolicy, StopRecording
 
 ARROWS = ("up", "down", "left", "right")
 

@@ -94,7 +94,7 @@ class LearnedCarController(CarController):
     def add_network(self, net: QNetwork) -> None:
         """Add a snapshot (e.g. of the agent being trained) to the pool; used from the next
         episode on."""
-        self._set_networks([*self.networks, copy.deepcopy(net)])
+        self._set_networks([*self.networks, copy.deepcopy(net).to(self.device)])
 
     @torch.no_grad()
     def q_values(self, model_index: torch.Tensor, stacks: torch.Tensor) -> torch.Tensor:

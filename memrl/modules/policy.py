@@ -24,6 +24,11 @@ from memrl.envs.vehicles import N_ACTIONS
 from memrl.modules.qnet import QNetwork
 
 
+class StopRecording(Exception):  # noqa: N818 - a request, not an error
+    """Raised by a policy (e.g. the human pressing Esc) to end a recording early; the episode
+    under way is dropped and the finished ones are kept."""
+
+
 class DrivingPolicy(ABC):
     """Decides the agent's action; may read the world state (privileged) or only pixels."""
 
@@ -33,11 +38,6 @@ class DrivingPolicy(ABC):
     @abstractmethod
     def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
         """Action index in [0, 9) for the current step; ``pixels`` is uint8 ``[4, H, W]``."""
-
-
-class StopRecording(Exception):  # noqa: N818 - a request, not an error
-    """Raised by a policy (e.g. the human pressing Esc) to end a recording or an evaluation
-    early; the episode under way is dropped and the finished ones are kept."""
 
 
 class FrameStack:

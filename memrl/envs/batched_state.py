@@ -1,0 +1,123 @@
+"""Exact state of the batched engine, for checkpoints taken while episodes are under way.
+
+:func:`engine_state` gathers everything that determines the engine's future (car states,
+flags, targets, policies, step counts, the frame ring, learned cars' frame stacks, and each
+env's numpy generator); :func:`load_engine_state` puts it back into an engine built with the
+same config, N and frame stack, on that engine's device. A resumed engine then gives exactly
+the frames, rewards and flags the saved one would have given (``tests/test_batched_state.py``).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from memrl.envs.config import env_config_dict
+
+if TYPE_CHECKING:
+    from memrl.envs.batched import BatchedLaneChange
+
+VERSION = 1
+"""Layout of the state dict; bumped when its keys change."""
+TENSORS = ("state", "present", "is_learned", "car_target", "policy", "target_lane", "steps", "crashed",
+           "reached", "car_fresh")
+"""Engine attributes saved as they are (``car_fresh`` is ``_car_fresh``)."""
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dict -> ``{"a.b": value}``."""
+    out: dict[str, Any] = {}
+    for key, value in d.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _meta(engine: BatchedLaneChange) -> dict[str, Any]:
+    return {"num_envs": engine.num_envs, "frame_stack": engine.frame_stack,
+            "car_slots": int(engine.present.shape[1]), "pool_size": engine.opponents.pool_size,
+            "config": _flat(env_config_dict(engine.cfg))}
+
+
+def _tensor(engine: BatchedLaneChange, name: str) -> torch.Tensor:
+    return engine._car_fresh if name == "car_fresh" else getattr(engine, name)
+
+
+def engine_state(engine: BatchedLaneChange) -> dict[str, Any]:
+    """Everything that determines the engine's future, as copies (tensors on its device)."""
+    state: dict[str, Any] = {"version": VERSION, **_meta(engine)}
+    for name in TENSORS:
+        state[name] = _tensor(engine, name).clone()
+    state["frames"] = engine._frames.clone()  # [S, N, H, W], newest in slot `head`
+    state["head"] = engine._head
+    state["car_frames"] = None if engine._car_frames is None else engine._car_frames.clone()
+    # each env's generator: the scene draws of its next resets and its learned cars' exploration
+    state["rngs"] = [None if rng is None else rng.bit_generator.state for rng in engine.rngs]
+    return state
+
+
+def _mismatch(engine: BatchedLaneChange, state: dict[str, Any]) -> list[str]:
+    """What differs between the engine and the one that saved ``state`` (empty: nothing)."""
+    mine = _meta(engine)
+    diffs = []
+    if state.get("version") != VERSION:
+        diffs.append(f"state layout version {state.get('version')!r} (this engine reads {VERSION})")
+    for key in ("num_envs", "frame_stack", "car_slots", "pool_size"):
+        if state.get(key) != mine[key]:
+            diffs.append(f"{key}: saved {state.get(key)!r}, this engine {mine[key]!r}")
+    saved = state.get("config", {})
+    for key in sorted(set(saved) | set(mine["config"])):
+        if saved.get(key, "<absent>") != mine["config"].get(key, "<absent>"):
+            diffs.append(f"config {key}: saved {saved.get(key, '<absent>')!r}, "
+                         f"this engine {mine['config'].get(key, '<absent>')!r}")
+    return diffs
+
+
+def load_engine_state(engine: BatchedLaneChange, state: dict[str, Any]) -> None:
+    """Restore ``state`` (from :func:`engine_state`) into ``engine``, on the engine's device.
+
+    Raises:
+        BatchedEnvError: the saving engine had another config, N, frame stack, car slots or
+            pool size (the message lists every difference), or a part of the state is missing.
+    """
+    from memrl.envs.batched import BatchedEnvError
+
+    if not isinstance(state, dict):
+        raise BatchedEnvError(f"engine state must be a dict from state_dict(), got {type(state).__name__}")
+    diffs = _mismatch(engine, state)
+    if diffs:
+        raise BatchedEnvError("engine state was saved by a different engine: " + "; ".join(diffs))
+    missing = [k for k in (*TENSORS, "frames", "head", "car_frames", "rngs") if k not in state]
+    if missing:
+        raise BatchedEnvError(f"engine state lacks {', '.join(missing)}")
+    if (state["car_frames"] is None) != (engine._car_frames is None):
+        raise BatchedEnvError("engine state: learned cars' frame stacks saved by an engine "
+                              f"{'without' if state['car_frames'] is None else 'with'} learned cars")
+    for name in TENSORS:
+        _copy(_tensor(engine, name), state[name], name)
+    _copy(engine._frames, state["frames"], "frames")  # in place: the ring's views stay valid
+    engine._head = int(state["head"])
+    if engine._car_frames is not None:
+        _copy(engine._car_frames, state["car_frames"], "car_frames")
+    engine.rngs = [None if s is None else _generator(s) for s in state["rngs"]]
+
+
+def _copy(into: torch.Tensor, value: Any, name: str) -> None:
+    from memrl.envs.batched import BatchedEnvError
+
+    if not isinstance(value, torch.Tensor) or value.shape != into.shape or value.dtype != into.dtype:
+        got = (f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor)
+               else type(value).__name__)
+        raise BatchedEnvError(f"engine state {name}: expected {tuple(into.shape)} {into.dtype}, got {got}")
+    into.copy_(value.to(into.device))
+
+
+def _generator(bit_state: dict[str, Any]) -> np.random.Generator:
+    """A generator continuing from a saved ``bit_generator.state``."""
+    bit_generator = getattr(np.random, bit_state["bit_generator"])()
+    bit_generator.state = bit_state
+    return np.random.Generator(bit_generator)

@@ -1,0 +1,112 @@
+"""Exploration options: what each one draws, batched over envs, and exact resume."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from memrl.dqn.exploration import KEEP_CURVATURE, make_exploration
+from memrl.envs.vehicles import ACTIONS, IDLE
+from memrl.train import train
+from tests.helpers import TINY
+
+
+def td(n, step_count=None, q=None):
+    data = {"action": torch.full((n,), IDLE)}
+    if step_count is not None:
+        data["step_count"] = torch.as_tensor(step_count).reshape(n, 1)
+    if q is not None:
+        data["action_value"] = q
+    return TensorDict(data, [n])
+
+
+def test_keep_curvature_actions_change_only_the_speed():
+    assert [ACTIONS[i] for i in KEEP_CURVATURE.tolist()] == [(-1, 0), (0, 0), (1, 0)]
+
+
+def test_speed_only_random_actions_keep_the_curvature():
+    torch.manual_seed(0)
+    explore = make_exploration(1.0, 1.0, 10, kind="speed_only")
+    actions = torch.cat([explore(td(64))["action"] for _ in range(20)])
+    assert set(actions.tolist()) == set(KEEP_CURVATURE.tolist())
+
+
+def test_ez_greedy_repeats_each_random_action_for_its_drawn_duration():
+    torch.manual_seed(0)
+    n = 8
+    explore = make_exploration(1.0, 1.0, 10, kind="ez_greedy", num_envs=n, ez_max_duration=5)
+    steps = []
+    for t in range(40):
+        before = explore.remaining.clone()
+        action = explore(td(n, step_count=torch.full((n,), t + 1)))["action"]
+        steps.append((before, explore.repeat.clone(), action))
+    for before, repeat, action in steps:
+        # an env mid-repeat plays its repeated action; with eps = 1 every env always is
+        assert torch.equal(action, repeat)
+        assert bool((before <= 4).all())  # at most max_duration - 1 left after a start
+    # runs of one action are at most 5 long unless the next draw repeats it by chance
+    lengths = torch.stack([b for b, _, _ in steps])
+    assert int(lengths.max()) == 4
+
+
+def test_ez_greedy_at_epsilon_zero_is_greedy_and_a_new_episode_ends_a_repeat():
+    explore = make_exploration(1.0, 0.0, 1, kind="ez_greedy", num_envs=2)
+    explore.remaining.fill_(3)
+    explore.repeat.fill_(0)
+    explore.step(1)  # epsilon 0
+    out = explore(td(2, step_count=torch.tensor([0, 5])))["action"]
+    assert out.tolist() == [IDLE, 0]  # env 0 started a new episode: its repeat ended
+    assert explore.remaining.tolist() == [0, 2]
+
+
+def test_boltzmann_follows_the_q_values_as_the_temperature_falls():
+    torch.manual_seed(0)
+    q = torch.zeros(4000, 9)
+    q[:, 2] = 1.0
+    hot = make_exploration(1.0, 1.0, 10, kind="boltzmann", temperature_start=100.0,
+                           temperature_end=100.0)
+    cold = make_exploration(1.0, 1.0, 10, kind="boltzmann", temperature_start=1e-3,
+                            temperature_end=1e-3)
+    assert set(cold(td(4000, q=q))["action"].tolist()) == {2}
+    counts = torch.bincount(hot(td(4000, q=q))["action"], minlength=9)
+    # near-uniform: each action ~444 of 4000; 5 sigma is ~110
+    assert int(counts.min()) > 300 and int(counts.max()) < 600
+
+
+def test_epsilon_anneals_by_frames_in_one_step():
+    explore = make_exploration(1.0, 0.1, 100)
+    explore.step(16)
+    assert float(explore.eps) == pytest.approx(1.0 - 16 * 0.9 / 100, abs=1e-6)
+    explore.step(1000)
+    assert float(explore.eps) == pytest.approx(0.1)
+
+
+def test_an_unknown_exploration_names_the_key(compose_cfg, tmp_path):
+    from memrl.dqn.config import TrainConfigError
+
+    cfg = compose_cfg("train", TINY + ["agent.exploration=noisy"])
+    with pytest.raises(TrainConfigError, match=r"agent\.exploration"):
+        train(cfg, tmp_path)
+
+
+@pytest.mark.parametrize("kind", ["ez_greedy", "boltzmann", "speed_only"])
+def test_each_option_trains_and_ez_greedy_resumes_exactly(compose_cfg, tmp_path, kind):
+    extra = ["env.num_envs=4", "total_episodes=8", "checkpoint_every=3", f"agent.exploration={kind}"]
+    full = train(compose_cfg("train", TINY + extra), tmp_path / "full")
+    assert full.episodes >= 8 and full.updates > 0
+    if kind != "ez_greedy":
+        return
+    short = train(compose_cfg("train", TINY + extra[:1] + ["total_episodes=4"] + extra[2:]),
+                  tmp_path / "cut")
+    assert short.episodes < full.episodes
+    resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]))
+    assert resumed.frames == full.frames
+
+    def rows(run):
+        with (tmp_path / run / "episodes.csv").open() as f:
+            return list(csv.DictReader(f))
+
+    assert rows("cut") == rows("full")
