@@ -35,6 +35,41 @@ def save_qnet(path: str | Path, net: QNetwork, env_cfg: dict[str, Any],
     return path
 
 
+def qnet_weights(state: dict[str, Any], prefix: str = "value_network_params.") -> dict[str, Any]:
+    """The Q-network's weights inside a TorchRL ``DQNLoss`` state dict (the online network's,
+    keys under ``prefix``; e.g. ``value_network_params.module.0.module.head.1.weight`` ->
+    ``head.1.weight``)."""
+    names = set(QNetwork().state_dict())
+    out = {}
+    for key, value in state.items():
+        if not key.startswith(prefix):
+            continue
+        parts = key[len(prefix):].split(".")
+        # the shortest tail that names a parameter of the bare network (wrappers add "module.N.")
+        name = next((".".join(parts[i:]) for i in range(len(parts)) if ".".join(parts[i:]) in names), None)
+        if name is not None:
+            out[name] = value
+    return out
+
+
+def load_stage1_qnet(path: str | Path) -> QNetwork:
+    """The Q-network at the end of mode B's stage 1: ``<run>/checkpoints/stage1.pt`` (or that
+    file), saved by the trainer as ``{"loss_module": DQNLoss state, "stage1": ...}``; a file in
+    the ``final.pt`` format (``{"qnet": ...}``) is read as such."""
+    p = Path(path)
+    file = next((c for c in (p, p / "stage1.pt", p / "checkpoints" / "stage1.pt") if c.is_file()), None)
+    if file is None:
+        raise CheckpointError(f"{path}: no stage-1 network (expected checkpoints/stage1.pt of a mode B run)")
+    try:
+        state = torch.load(file, weights_only=False, map_location="cpu")
+        weights = state["qnet"] if "qnet" in state else qnet_weights(state["loss_module"])
+        net = QNetwork()
+        net.load_state_dict(weights)
+    except Exception as err:  # truncated file, foreign pickle, another network
+        raise CheckpointError(f"{file}: not a memrl stage-1 checkpoint ({err})") from err
+    return net.eval()
+
+
 def load_qnet(path: str | Path) -> tuple[QNetwork, dict[str, Any]]:
     """The Q-network of a finished run and the env config it was trained with."""
     file = resolve(path)

@@ -111,7 +111,14 @@ def _rollout_row(cfg: DictConfig, g: RowGroup, out: Path, files: ReportFiles) ->
     if actor is None:
         log.info("fig. 7: %s cannot be replayed (a person drove); skipped", label)
         return
-    episodes = rollouts.pick_episodes(result, str(r.initial_lane), int(r.count), str(r.pick))
+    lane = str(r.initial_lane)
+    episodes = rollouts.pick_episodes(result, lane, int(r.count), str(r.pick))
+    title = f"Fig. 7: {label}, {result.unit}, {lane.replace('_', '-')} starts"
+    note = None
+    if r.pick == "success" and not rollouts.successes(result, lane):
+        total = sum(x.initial_lane == lane for x in result.records())
+        note = (f"no episode of {label} ({result.unit}) changed into the target lane without a collision "
+                f"(0 of {total}); these are its first episodes")
     caps = [rollouts.capture(actor, result, str(r.initial_lane), e) for e in episodes]
     for c in caps:  # the replay must be the evaluated episode
         rec = next(x for x in result.records() if x.initial_lane == r.initial_lane
@@ -121,7 +128,7 @@ def _rollout_row(cfg: DictConfig, g: RowGroup, out: Path, files: ReportFiles) ->
             log.warning("fig. 7: replay of %s episode %d differs from its evaluation", label, rec.episode)
     name = re.sub(r"[^A-Za-z0-9.=-]+", "_", label).strip("_")  # Default_total_frames=1
     steps = None if r.steps is None else [int(x) for x in r.steps]
-    picture = rollouts.strip(caps, steps, float(r.scale))
+    picture = rollouts.strip(caps, steps, float(r.scale), title=title, note=note)
     files.strips.append(rollouts.write_png(picture, out / f"fig7_{name}.png"))
     if r.video:
         files.videos.append(rollouts.write_video(caps, out / f"rollouts_{name}.mp4", float(r.fps)))

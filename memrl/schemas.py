@@ -453,12 +453,96 @@ def check_preview(cfg: DictConfig) -> None:
     check_env(cfg.env)
 
 
+# ---------------------------------------------------------------------------------------------
+# study
+
+STUDY_MODES = ("Default", "A", "B")
+OPPONENTS = ("constant", "learned", "mixed")
+BASELINES = ("scripted", "random")
+GRID_KEYS = ("seed", "mode", "resume")
+"""Train keys that the study's grid sets itself (``study.train_overrides`` may not)."""
+
+
+@dataclass
+class StudyConfig:
+    """``study`` node of ``conf/study.yaml``: the grid, where it goes and how it runs."""
+
+    name: str = "table3"
+    """Name of the study (its folder under ``outputs/study/``)."""
+    dir: str = "${paths.output_root}/study/${study.name}"
+    """The study folder: ``runs/``, ``baselines/``, ``stage1/``, ``report.md``, ``study.json``."""
+    modes: list[str] = spec(["Default", "A", "B"], choices=STUDY_MODES, nonempty=True)
+    """Training modes (rows of Table III)."""
+    seeds: list[int] = spec([0, 1, 2, 3, 4], ge=0, le=SEED_MAX, nonempty=True)
+    """Training seeds of every (mode, opponent)."""
+    opponents: list[str] = spec([], choices=OPPONENTS)
+    """Opponent groups to train among ([]: the train config's own, constant by default)."""
+    baselines: list[str] = spec(["scripted", "random"], choices=BASELINES)
+    """Untrained policies evaluated beside the runs."""
+    train_overrides: list[str] = field(default_factory=list)
+    """Overrides of every training run, e.g. [+experiment=smoke, total_frames=100000, device=cuda]."""
+    report_overrides: list[str] = field(default_factory=list)
+    """Overrides of the report config (``conf/report.yaml``), e.g. [n_resamples=2000]."""
+    jobs: int = spec(1, ge=1)
+    """Training runs at once (more than 1: spawned processes)."""
+    workers: int = spec(2, ge=0)
+    """Evaluation processes (0: one per CPU)."""
+    batch: int = spec(8, ge=1)
+    """Evaluation episodes stepped in lockstep per process."""
+    stage1: bool = True
+    """Also evaluate mode B's stage-1 weights (``checkpoints/stage1.pt``) on the protocol."""
+    allow_changes: bool = False
+    """Go on in a study folder made with other ``train_overrides`` (finished runs are kept)."""
+    progress: bool = True
+    """Progress bars of the evaluations."""
+
+
+@dataclass
+class StudySchema:
+    """``conf/study.yaml``: train, evaluate and report a grid of runs (Table III)."""
+
+    task_name: str = "study"
+    study: StudyConfig = field(default_factory=StudyConfig)
+    debug: bool = False
+    """Full tracebacks for user errors (as ``HYDRA_FULL_ERROR=1``)."""
+    protocol: Any = MISSING
+    paths: Any = MISSING
+
+
+def override_key(override: str) -> str:
+    """The config key an override names: ``+mode=A`` -> ``mode``, ``~x.y`` -> ``x.y``."""
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def check_study(cfg: DictConfig) -> None:
+    """The study keys, the protocol and the study folder (the train overrides are checked when
+    the grid's configs are composed)."""
+    from memrl.evaluation.protocol import check_protocol
+
+    check_fields(StudySchema, cfg)
+    check_protocol(cfg.protocol)
+    s = cfg.study
+    for key in ("modes", "seeds", "opponents", "baselines"):
+        values = list(s[key])
+        if len(set(values)) != len(values):
+            raise config_error(f"study.{key}", f"a value appears twice in {values}")
+    grid = GRID_KEYS + (("opponent",) if s.opponents else ())
+    for o in s.train_overrides:
+        key = override_key(str(o))
+        if "=" not in str(o) or key in grid:
+            raise config_error("study.train_overrides", f"{o!r}: give key=value overrides of the train "
+                               f"config other than {', '.join(grid)} (the grid sets those: study.modes, "
+                               "study.seeds, study.opponents)")
+    check_writable(str(s.dir), "study.dir")
+
+
 SCHEMAS: dict[str, type] = {"train": TrainSchema, "record": RecordSchema, "evaluate": EvaluateSchema,
                             "report": ReportSchema, "deploy": DeploySchema, "bench": BenchSchema,
-                            "preview": PreviewSchema}
+                            "preview": PreviewSchema, "study": StudySchema}
 """Config name -> schema of its top-level keys (registered as ``<name>_schema``)."""
 
 CHECKS: dict[str, Callable[[DictConfig], None]] = {
     "train": check_train, "record": check_record, "evaluate": check_evaluate,
-    "report": check_report, "deploy": check_deploy, "bench": check_bench, "preview": check_preview}
+    "report": check_report, "deploy": check_deploy, "bench": check_bench, "preview": check_preview,
+    "study": check_study}
 """Config name -> the check of everything that command reads."""

@@ -34,12 +34,13 @@ def commands():
     from memrl.preview import preview
     from memrl.record import record
     from memrl.report import report
+    from memrl.study import study
     from memrl.train import train
 
     return {"train": lambda c, out: train(c, out), "record": lambda c, out: record(c),
             "evaluate": lambda c, out: evaluate(c, out), "report": lambda c, out: report(c, out),
             "deploy": lambda c, out: deploy(c, out), "bench": lambda c, out: bench(c, out),
-            "preview": lambda c, out: preview(c, out)}
+            "preview": lambda c, out: preview(c, out), "study": lambda c, out: study(c)}
 
 
 def left_behind(root: Path) -> list[Path]:
@@ -152,6 +153,30 @@ ROWS = [
     ("preview", ["scale=0"], "scale"),
     ("preview", ["env.bev.width=4"], "bev.width"),
     ("preview", ["debug=maybe"], "debug"),
+    # study
+    ("study", ["study.modes=[Default,C]"], "study.modes"),
+    ("study", ["study.modes=[]"], "study.modes"),
+    ("study", ["study.modes=[A,A]"], "study.modes"),
+    ("study", ["study.seeds=[-1]"], "study.seeds"),
+    ("study", ["study.seeds=[]"], "study.seeds"),
+    ("study", ["study.opponents=[nobody]"], "study.opponents"),
+    ("study", ["study.baselines=[human]"], "study.baselines"),
+    ("study", ["study.jobs=0"], "study.jobs"),
+    ("study", ["study.workers=-1"], "study.workers"),
+    ("study", ["study.batch=0"], "study.batch"),
+    ("study", ["study.stage1=maybe"], "study.stage1"),
+    ("study", ["study.allow_changes=maybe"], "study.allow_changes"),
+    ("study", ["study.progress=maybe"], "study.progress"),
+    ("study", ["study.train_overrides=['seed=3']"], "study.train_overrides"),
+    ("study", ["study.train_overrides=['+mode=A']"], "study.train_overrides"),
+    ("study", ["study.opponents=[constant]", "study.train_overrides=['opponent=mixed']"],
+     "study.train_overrides"),
+    ("study", ["study.train_overrides=['agent.lrr=1']"], "agent.lrr"),
+    ("study", ["study.train_overrides=['total_frames=0']"], "total_frames"),
+    ("study", ["study.dir=/proc/nope"], "study.dir"),
+    ("study", ["study.nmae=x"], "study.nmae"),
+    ("study", ["protocol.episodes=0"], "episodes"),
+    ("study", ["debug=maybe"], "debug"),
 ]
 
 
@@ -290,6 +315,7 @@ CLI_ROWS = [
     (["memrl.train", "+mode=B", "mode.demos_path=/nonexistent/demos"], "mode.demos_path"),
     (["memrl.record", "episodes=0"], "'episodes'"),
     (["memrl.bench", "nope"], "benchmarks"),
+    (["memrl.study", "study.train_overrides=['agent.lrr=1']"], "agent.lrr"),
 ]
 
 

@@ -18,7 +18,7 @@ from tests.test_learner import batch
 
 def test_bench_learner_times_memrl_beside_the_bare_loop(compose_cfg, tmp_path, monkeypatch):
     # the compile variant of the ablation stays eager here (compiling takes tens of seconds)
-    monkeypatch.setattr("memrl.dqn.learner.compile_qnet", lambda qnet, sizes: False)
+    monkeypatch.setattr("memrl.dqn.learner.compile_qnet", lambda qnet, sizes, device="cpu": False)
     cfg = compose_cfg("bench", ["benchmarks=[learner]", "learner.batch_sizes=[4]",
                                 "learner.seconds=0.01", "learner.rounds=1",
                                 "learner.warmup_updates=1", "learner.buffer_transitions=40"])

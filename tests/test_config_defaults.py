@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
-COMMANDS = ("train", "record", "evaluate", "report", "deploy", "bench", "preview")
+COMMANDS = ("train", "record", "evaluate", "report", "deploy", "bench", "preview", "study")
 GROUP_FILES = {("train", "env"): "env/lane_change.yaml", ("train", "agent"): "agent/dqn.yaml",
                ("train", "buffer"): "buffer/default.yaml", ("deploy", "deploy"): "deploy/default.yaml",
                ("evaluate", "protocol"): "protocol/paper.yaml"}
@@ -71,7 +71,7 @@ def command(args: list[str]) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
-@pytest.mark.parametrize("name", ["train", "evaluate"])
+@pytest.mark.parametrize("name", ["train", "evaluate", "study"])
 def test_help_lists_groups_and_config_without_importing_torch(name):
     proc = command([f"memrl.{name}", "--help"])
     assert proc.returncode == 0, proc.stderr[-2000:]

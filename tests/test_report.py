@@ -218,3 +218,48 @@ def test_evaluate_takes_its_traffic_from_the_opponent_group(compose_cfg):
     p = compose_cfg("evaluate", ["policy=random", "opponent=mixed", "env.opponent.pool=[x]"]).protocol
     assert check_protocol(p).opponent["type"] == "mixed"
     assert check_protocol(p).opponent["pool"] == ["x"]
+
+
+def test_fig5_pools_each_run_to_its_own_end():
+    from memrl.evaluation.figures import pool
+
+    p = pool([np.array([0.0, 10.0, 20.0]), np.array([0.0, 20.0, 40.0])],
+             [np.array([1.0, 1.0, 1.0]), np.array([3.0, 3.0, 3.0])], n_resamples=100, points=5)
+    assert p.x.tolist() == [0.0, 10.0, 20.0, 30.0, 40.0]
+    assert p.n.tolist() == [2, 2, 2, 1, 1] and p.mean.tolist() == [2.0, 2.0, 2.0, 3.0, 3.0]
+    assert p.low[0] == 1.0 and p.high[0] == 3.0 and p.low[-1] == p.high[-1] == 3.0
+
+
+def test_fig5_draws_runs_of_different_lengths_against_env_steps(tmp_path, compose_cfg):
+    for seed, n in ((0, 40), (1, 25)):
+        fake_run(tmp_path, compose_cfg, mode="B", seed=seed, episodes=n)
+    runs = find_training_runs([tmp_path])
+    assert sorted(len(r.columns["env_steps"]) for r in runs) == [25, 40]
+    path = learning_curves(runs, tmp_path / "fig5.png", window=5, n_resamples=100)
+    assert path is not None and cv2.imread(str(path)).std() > 10
+
+
+def test_fig7_strip_names_the_method_and_says_when_nothing_succeeded():
+    from memrl.evaluation.protocol import EpisodeRecord
+    from memrl.evaluation.rollouts import Capture, strip
+
+    rec = EpisodeRecord(initial_lane="non_goal", episode=0, seed=7, steps=2, episode_return=0.0,
+                        collided=True, reached_target=False, duration=300, target_lane=1,
+                        start_lane=0, vehicles=2)
+    scenes = [np.full((60, 40, 3), 64, np.uint8)] * 3
+    cap = Capture(rec, scenes, [np.zeros((84, 84), np.uint8)] * 3, [4, 4])
+    plain = strip([cap], [0, 2])
+    named = strip([cap], [0, 2], title="Fig. 7: B, seed 0", note="no episode of B succeeded")
+    assert named.shape[0] == plain.shape[0] + 28 + 24
+    red = (named[..., 0] > 150) & (named[..., 1] < 80) & (named[..., 2] < 80)
+    assert red[28:52].any() and not red[:28].any()  # the note, in red, under the title
+    legend = plain[-24:]
+    assert (np.abs(legend.astype(int) - [255, 220, 0]).sum(-1) == 0).any()  # the agent's swatch
+
+
+def test_rows_of_other_traffic_follow_their_mode():
+    from memrl.evaluation.rows import row_rank
+
+    names = ["random", "B (learned)", "zeta", "B", "Default (mixed)", "Default", "A"]
+    assert sorted(names, key=row_rank) == ["Default", "Default (mixed)", "A", "B", "B (learned)",
+                                           "random", "zeta"]

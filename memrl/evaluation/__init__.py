@@ -7,6 +7,6 @@
 * :mod:`~memrl.evaluation.results`: ``eval.json`` and the per-episode CSV, written and read.
 * :mod:`~memrl.evaluation.periodic`: a few greedy episodes during training.
 * :mod:`~memrl.evaluation.stats`: Table III with bootstrap intervals and pairwise differences.
-* :mod:`~memrl.evaluation.figures`: Fig. 5 learning curves.
+* :mod:`~memrl.evaluation.figures`: Fig. 5 learning curves (against env steps) and mode B's stage switch.
 * :mod:`~memrl.evaluation.rollouts`: Fig. 7 picture strips and MP4 videos of episodes.
 """

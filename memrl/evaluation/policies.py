@@ -162,6 +162,15 @@ def run_config(run: Path) -> dict[str, Any]:
     return OmegaConf.to_container(OmegaConf.load(path)) if path.is_file() else {}  # type: ignore[return-value]
 
 
+def run_label(cfg: dict[str, Any]) -> str:
+    """Table III row label of a run config: its mode (Default, A, B), and the traffic it was
+    trained among when that is not constant-speed cars: ``A (mixed)``."""
+    mode = str(cfg.get("mode", {}).get("name", "default"))
+    opponent = (cfg.get("env") or {}).get("opponent", "constant")
+    traffic = opponent.get("type", "constant") if isinstance(opponent, dict) else str(opponent)
+    return MODE_LABELS.get(mode, mode) + ("" if traffic == "constant" else f" ({traffic})")
+
+
 class CheckpointSource(PolicySource):
     """Greedy policies of finished training runs.
 
@@ -181,10 +190,7 @@ class CheckpointSource(PolicySource):
             net, ckpt_env = load_qnet(run)
             cfg = run_config(run)
             mode = str(cfg.get("mode", {}).get("name", "default"))
-            opponent = (cfg.get("env") or {}).get("opponent", "constant")
-            traffic = opponent.get("type", "constant") if isinstance(opponent, dict) else str(opponent)
-            # Rows are grouped by the traffic the agent was trained among: "A (mixed)".
-            label = MODE_LABELS.get(mode, mode) + ("" if traffic == "constant" else f" ({traffic})")
+            label = run_label(cfg)  # rows are grouped by the traffic trained among: "A (mixed)"
             out.append(Candidate(
                 name=self.name or label, actor=GreedyActor(net),
                 env=cfg.get("env") or ckpt_env, out_dir=run / self.subdir,

@@ -80,6 +80,12 @@ def capture(actor: Actor, result: EvalResult, initial_lane: str, episode: int) -
     return cap["done"]
 
 
+def successes(result: EvalResult, initial_lane: str) -> list[int]:
+    """Episodes that survived and reached the target lane from another lane (a real change)."""
+    return [r.episode for r in result.records() if r.initial_lane == initial_lane
+            and r.survived and r.goal and not r.started_on_target]
+
+
 def pick_episodes(result: EvalResult, initial_lane: str, count: int, how: str = "success") -> list[int]:
     """Episode indices to show: ``success``: the first that survived and reached the target
     lane from another lane (a real lane change), filled up with the first others; ``first``:
@@ -87,8 +93,7 @@ def pick_episodes(result: EvalResult, initial_lane: str, count: int, how: str = 
     if how not in ("success", "first"):
         raise ValueError(f"rollouts 'pick': expected success or first, got {how!r}")
     recs = [r for r in result.records() if r.initial_lane == initial_lane]
-    good = [r.episode for r in recs if r.survived and r.goal and not r.started_on_target] \
-        if how == "success" else []
+    good = successes(result, initial_lane) if how == "success" else []
     rest = [r.episode for r in recs if r.episode not in good]
     return (good + rest)[:count]
 
@@ -104,7 +109,7 @@ def _outcome(c: Capture) -> str:
     r = c.record
     end = f"collision at step {r.steps}" if r.collided else f"no collision in {r.steps} steps"
     goal = f"target lane at step {c.reached_at}" if c.reached_at is not None else "target lane not reached"
-    return f"seed {r.seed}, {r.vehicles} cars: {end}; {goal}"
+    return f"scene seed {r.seed}, {r.vehicles} cars: {end}; {goal}"
 
 
 def auto_steps(c: Capture, n: int = 5, after: int = 30) -> list[int]:
@@ -115,10 +120,38 @@ def auto_steps(c: Capture, n: int = 5, after: int = 30) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(0, stop, n)})
 
 
+LEGEND = (("agent", "agent"), ("constant", "other car (constant speed)"),
+          ("learned", "other car (past agent)"), ("target_lane", "target lane"), ("road", "road"))
+"""Colour legend of the scene pictures: (palette shade, meaning)."""
+
+
+def _band(width: int, text: str, height: int = 24, color: tuple[int, int, int] = BLACK,
+          scale: float = 0.45) -> np.ndarray:
+    band = np.full((height, width, 3), 255, np.uint8)
+    cv2.putText(band, text, (4, height - 7), FONT, scale, color, 1, cv2.LINE_AA)
+    return band
+
+
+def legend(width: int, height: int = 24) -> np.ndarray:
+    """A white band with a coloured swatch and the meaning of each scene colour."""
+    from memrl.envs.render import PALETTE
+
+    band = np.full((height, max(width, 10), 3), 255, np.uint8)
+    x = 4
+    for shade, text in LEGEND:
+        cv2.rectangle(band, (x, 5), (x + 14, height - 6), PALETTE[shade], -1)
+        cv2.rectangle(band, (x, 5), (x + 14, height - 6), BLACK, 1)
+        cv2.putText(band, text, (x + 19, height - 8), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
+        x += 19 + cv2.getTextSize(text, FONT, 0.4, 1)[0][0] + 14
+    return band
+
+
 def strip(captures: Sequence[Capture], steps: Sequence[int] | None = None, scale: float = 1.0,
-          gap: int = 6) -> np.ndarray:
+          gap: int = 6, title: str | None = None, note: str | None = None) -> np.ndarray:
     """One row per episode: scene pictures at ``steps`` (the last one when the episode ended
-    earlier; None: :func:`auto_steps` per episode), labelled like the paper's Fig. 7; RGB."""
+    earlier; None: :func:`auto_steps` per episode), labelled like the paper's Fig. 7, under
+    ``title`` (method and seed) and ``note`` (in red, e.g. that no episode succeeded), over a
+    colour legend; RGB."""
     rows = []
     for i, c in enumerate(captures):
         tiles = []
@@ -129,9 +162,13 @@ def strip(captures: Sequence[Capture], steps: Sequence[int] | None = None, scale
             tiles.append(_label(img, name))
             tiles.append(np.full((tiles[-1].shape[0], gap, 3), 255, np.uint8))
         row = np.concatenate(tiles[:-1], axis=1)
-        title = np.full((24, row.shape[1], 3), 255, np.uint8)
-        cv2.putText(title, f"({chr(97 + i)}) {_outcome(c)}", (4, 17), FONT, 0.42, BLACK, 1, cv2.LINE_AA)
-        rows += [title, row, np.full((gap, row.shape[1], 3), 255, np.uint8)]
+        caption = np.full((24, row.shape[1], 3), 255, np.uint8)
+        cv2.putText(caption, f"({chr(97 + i)}) {_outcome(c)}", (4, 17), FONT, 0.42, BLACK, 1, cv2.LINE_AA)
+        rows += [caption, row, np.full((gap, row.shape[1], 3), 255, np.uint8)]
+    width = max(r.shape[1] for r in rows)
+    head = ([_band(width, title, 28, scale=0.55)] if title else []) + \
+        ([_band(width, note, 24, (200, 0, 0))] if note else [])
+    rows = [*head, *rows, legend(width)]
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
     return np.concatenate(rows)

@@ -27,7 +27,8 @@ IGNORED_KEYS = ("seed", "progress", "resume", "paths", "logger", "log_every", "c
                 "hydra", "task_name", "debug")
 """Config keys (and key prefixes: ``paths`` covers ``paths.*``) that never split a row."""
 ROW_ORDER = ("Default", "A", "B", "scripted", "random", "human")
-"""Rows in this order first; other labels follow alphabetically."""
+"""Rows in this order first (each followed by its other-traffic rows, ``B (mixed)``); other
+labels follow alphabetically."""
 _ABSENT = "<absent>"
 
 
@@ -120,6 +121,12 @@ def _natural(text: str) -> tuple:
     return tuple((0, int(t), "") if t.isdigit() else (1, 0, t) for t in text.replace("_", " ").split())
 
 
+def row_rank(name: str) -> tuple[int, str]:
+    """Sort key of a row name: :data:`ROW_ORDER`, ``B (mixed)`` right after ``B``, then the rest."""
+    head = name.split(" (", 1)[0]
+    return (ROW_ORDER.index(head) if head in ROW_ORDER else len(ROW_ORDER), name)
+
+
 def split_rows(results: Sequence[EvalResult], ignore: Sequence[str] = IGNORED_KEYS) -> list[RowGroup]:
     """Rows of Table III: by name, then by configuration; units in natural order.
 
@@ -133,7 +140,7 @@ def split_rows(results: Sequence[EvalResult], ignore: Sequence[str] = IGNORED_KE
         key = json.dumps(settings, sort_keys=True, default=str)
         by.setdefault(r.name, {}).setdefault(key, (settings, []))[1].append(r)
     groups = []
-    for base in sorted(by, key=lambda k: (ROW_ORDER.index(k) if k in ROW_ORDER else len(ROW_ORDER), k)):
+    for base in sorted(by, key=row_rank):
         configs = list(by[base].values())
         keys = sorted({k for s, _ in configs for k in s})
         differing = [k for k in keys if len({_text(s.get(k, _ABSENT)) for s, _ in configs}) > 1]

@@ -11,6 +11,25 @@ from memrl.evaluation.stats import ALL, COLUMNS, Cell, Difference, Row
 
 LANE_NAMES = {"random": "random", "non_goal": "non-goal"}
 
+PAPER_TABLE3: dict[str, dict[tuple[str, str], float]] = {
+    "Default": {("random", "survival"): 53, ("random", "goal"): 50,
+                ("non_goal", "survival"): 33, ("non_goal", "goal"): 29},
+    "A": {("random", "survival"): 49, ("random", "goal"): 37,
+          ("non_goal", "survival"): 37, ("non_goal", "goal"): 10},
+    "B": {("random", "survival"): 67, ("random", "goal"): 66,
+          ("non_goal", "survival"): 51, ("non_goal", "goal"): 48},
+    "human": {("random", "survival"): 50.7, ("random", "goal"): 50.3},
+}
+"""The paper's Table III (per 100 episodes), by row and column: survival / goal from random
+starts, then from non-goal starts (Default 53/50 and 33/29: the issue's "Default 33/29
+survival/goal from non-goal starts"); the people drove random starts only. Constant-speed
+traffic: rows of other traffic (``B (learned)``) have no paper value."""
+
+
+def paper_value(row: str, column: tuple[str, str]) -> float | None:
+    """The paper's number for a row (its name: Default, A, B, human) and column, if any."""
+    return PAPER_TABLE3.get(row, {}).get(column)
+
 
 def _num(x: float) -> str:
     return f"{x:.1f}".rstrip("0").rstrip(".") if abs(x - round(x)) < 1e-9 else f"{x:.1f}"
@@ -112,6 +131,36 @@ def verdict(diffs: Sequence[Difference], pct: str) -> str:
     return " ".join(out)
 
 
+def _paper_text(row: Row, column: tuple[str, str]) -> str:
+    """The paper's value of a row without configuration variants ("" otherwise)."""
+    value = None if row.variant else paper_value(row.base or row.label, column)
+    return "" if value is None else _num(float(value))
+
+
+def side_by_side(rows: Sequence[Row], confidence: float = 0.95) -> str:
+    """Table III with the paper's number beside each of ours: mean [interval], IQM [interval]."""
+    pct = f"{100 * confidence:g}%"
+    cols = [c for c in COLUMNS if any(c in r.cells for r in rows)]
+    heads = [h for c in cols for h in (column_name(c), "paper")]
+    lines = [f"Per column: mean over seeds [{pct} stratified-bootstrap interval]; IQM [{pct} interval]; "
+             "then the paper's value (Table III, constant-speed traffic).", "",
+             "| method | n | " + " | ".join(heads) + " |", "|---|---|" + "---|" * len(heads)]
+    for r in rows:
+        cells = []
+        for c in cols:
+            cell = r.cells.get(c)
+            ours = "" if cell is None else \
+                f"{fmt_cell(cell, confidence, per_unit=False)}; IQM {fmt_iqm(cell)}"
+            cells += [ours, _paper_text(r, c) or "\u2014"]
+        lines.append(f"| {r.label} | {len(r.units)} | " + " | ".join(cells) + " |")
+    lines += ["", "Per-seed values:", "", "| method | units | " + " | ".join(column_name(c) for c in cols)
+              + " |", "|---|---|" + "---|" * len(cols)]
+    for r in rows:
+        vals = [", ".join(_num(v) for v in r.cells[c].values) if c in r.cells else "" for c in cols]
+        lines.append(f"| {r.label} | {', '.join(r.units)} | " + " | ".join(vals) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def _round(x: float | None) -> float | str:
     return "" if x is None else round(x, 4)
 
@@ -121,14 +170,16 @@ def write_csv(rows: Sequence[Row], diffs: Sequence[Difference], table_path: Path
     with table_path.open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["method", "n", "units", "initial_lane", "metric", "mean", "ci_low", "ci_high",
-                    "iqm", "iqm_low", "iqm_high", "ci_over", "values", "episodes", "base", "config"])
+                    "iqm", "iqm_low", "iqm_high", "ci_over", "values", "episodes", "base", "config",
+                    "paper"])
         for r in rows:
             config = ";".join(f"{k}={v}" for k, v in r.variant.items())
             for (lane, metric), c in r.cells.items():
                 w.writerow([r.label, len(r.units), ";".join(r.units), lane, metric, round(c.mean, 4),
                             round(c.low, 4), round(c.high, 4), _round(c.iqm), _round(c.iqm_low),
                             _round(c.iqm_high), c.over, ";".join(_num(v) for v in c.values),
-                            ";".join(map(str, c.episodes)), r.base or r.label, config])
+                            ";".join(map(str, c.episodes)), r.base or r.label, config,
+                            _paper_text(r, (lane, metric))])
     with diff_path.open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["a", "b", "n_a", "n_b", "initial_lane", "metric", "difference", "ci_low", "ci_high",

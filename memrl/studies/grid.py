@@ -1,0 +1,188 @@
+"""The study's grid: one training run per (mode, opponent, seed), composed, resumed, trained.
+
+Each cell is trained by calling :func:`memrl.train.train` on the train config composed with
+Hydra's compose API (the user's ``study.train_overrides``, then the cell's mode, opponent and
+seed), in this process (``study.jobs=1``) or in ``study.jobs`` spawned processes. Why not
+Hydra's launcher: every cell needs its own decision first (skip a finished run, ``resume=`` a
+killed one, start a new one), and the study goes on to evaluate and report once all cells are
+done; a sweep of the train app decides neither.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+
+log = logging.getLogger(__name__)
+
+CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
+MODE_OVERRIDES = {"Default": [], "A": ["+mode=A"], "B": ["+mode=B"]}
+"""Train overrides of each mode of ``study.modes``."""
+CELL_DEFAULTS = ["progress=false"]
+"""Overrides of every cell before the user's (no progress bars from parallel runs)."""
+
+
+def compose_config(name: str, overrides: Sequence[str]) -> DictConfig:
+    """``conf/<name>.yaml`` composed with ``overrides`` (inside a Hydra app or outside one)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from memrl.configs import register_configs
+
+    register_configs()
+    if GlobalHydra.instance().is_initialized():  # inside @hydra.main: the app's search path
+        return compose(config_name=name, overrides=list(overrides))
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name=name, overrides=list(overrides))
+
+
+@dataclass
+class Cell:
+    """One training run of the grid."""
+
+    mode: str
+    opponent: str
+    seed: int
+    run_dir: Path
+    overrides: list[str]
+    cfg: DictConfig | None = None
+    """The composed train config (``paths.output_dir`` set to ``run_dir``)."""
+
+    @property
+    def name(self) -> str:
+        return self.run_dir.name
+
+    def finished(self) -> bool:
+        """``summary.json`` and ``checkpoints/final.pt``: nothing left to train."""
+        return (self.run_dir / "summary.json").is_file() and \
+            (self.run_dir / "checkpoints" / "final.pt").is_file()
+
+    def resumable(self) -> bool:
+        """Killed after a checkpoint: resume from it."""
+        return not self.finished() and (self.run_dir / "checkpoints" / "last").is_dir()
+
+
+def cells(study: DictConfig, runs_dir: Path) -> list[Cell]:
+    """The grid, composed (a bad train override stops here, naming the key)."""
+    out = []
+    opponents: list[str | None] = [str(o) for o in study.opponents] or [None]
+    user = [str(o) for o in study.train_overrides]
+    for mode in study.modes:
+        for opponent in opponents:
+            for seed in study.seeds:
+                grid = [*MODE_OVERRIDES[str(mode)], *([f"opponent={opponent}"] if opponent else []),
+                        f"seed={int(seed)}"]
+                overrides = [*CELL_DEFAULTS, *user, *grid]
+                cfg = compose_config("train", overrides)
+                traffic = str(cfg.env.opponent.type)
+                run_dir = runs_dir / f"{mode}_{traffic}_s{int(seed)}"
+                cfg.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run
+                out.append(Cell(str(mode), traffic, int(seed), run_dir, overrides, cfg))
+    return out
+
+
+@dataclass
+class Outcome:
+    """What happened to the cells."""
+
+    skipped: list[str] = field(default_factory=list)
+    """Finished before this call."""
+    trained: list[str] = field(default_factory=list)
+    """Started and finished now."""
+    resumed: list[str] = field(default_factory=list)
+    """Continued from a checkpoint and finished now."""
+    failed: dict[str, str] = field(default_factory=dict)
+    """Cell -> the error's last line."""
+
+
+def train_cell(cfg: DictConfig, run_dir: str, resume: bool) -> dict[str, Any]:
+    """Train (or resume) one cell; its log goes to ``<run>/train.log``. Runs in a worker
+    process too, so it takes and returns plain values."""
+    import dataclasses
+
+    from memrl.train import train
+
+    path = Path(run_dir)
+    path.mkdir(parents=True, exist_ok=True)
+    cfg = cfg.copy()
+    cfg.resume = str(path) if resume else None
+    # Hand-written: outside a Hydra run nothing writes the run's train.log (Hydra's job_logging)
+    handler = logging.FileHandler(path / "train.log")
+    handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    level = root.level
+    root.setLevel(min(level, logging.INFO) if level else logging.INFO)
+    try:
+        return dataclasses.asdict(train(cfg, path))
+    except BaseException:
+        log.exception("training %s failed", path)  # the traceback into the run's train.log
+        raise
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
+        handler.close()
+
+
+def _last_line(err: BaseException) -> str:
+    return f"{type(err).__name__}: {str(err).strip().splitlines()[-1] if str(err).strip() else ''}"
+
+
+def plan(grid: Sequence[Cell], out: Outcome) -> list[tuple[Cell, bool]]:
+    """The cells to train and whether each resumes; finished ones go to ``out.skipped``. A
+    folder without a checkpoint (killed before its first one) is removed and started afresh."""
+    todo: list[tuple[Cell, bool]] = []
+    for cell in grid:
+        if cell.finished():
+            out.skipped.append(cell.name)
+            continue
+        resume = cell.resumable()
+        if not resume and cell.run_dir.exists():
+            log.info("%s: no checkpoint to resume from; starting it again", cell.name)
+            shutil.rmtree(cell.run_dir)
+        log.info("%s %s (%s)", "resuming" if resume else "training", cell.name, " ".join(cell.overrides))
+        todo.append((cell, resume))
+    return todo
+
+
+def run_cells(grid: Sequence[Cell], jobs: int,
+              trainer: Callable[[DictConfig, str, bool], dict[str, Any]] = train_cell) -> Outcome:
+    """Train every unfinished cell (:func:`plan`), ``jobs`` at once; a failing cell is
+    recorded and the others go on."""
+    out = Outcome()
+    todo = plan(grid, out)
+
+    def done(cell: Cell, resume: bool, error: BaseException | None) -> None:
+        if error is None:
+            (out.resumed if resume else out.trained).append(cell.name)
+            log.info("%s finished", cell.name)
+        else:
+            out.failed[cell.name] = _last_line(error)
+            log.error("%s failed: %s (log: %s)", cell.name, out.failed[cell.name],
+                      cell.run_dir / "train.log")
+
+    if jobs <= 1 or len(todo) <= 1:
+        for cell, resume in todo:
+            error: BaseException | None = None
+            try:
+                trainer(cell.cfg, str(cell.run_dir), resume)  # type: ignore[arg-type]
+            except Exception as err:  # one failing run must not stop the study
+                error = err
+            done(cell, resume, error)
+        return out
+    # spawn: a fresh interpreter per worker (no forked torch / OpenMP state)
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        futures: list[tuple[Cell, bool, Future]] = [
+            (cell, resume, pool.submit(trainer, cell.cfg, str(cell.run_dir), resume))  # type: ignore[arg-type]
+            for cell, resume in todo]
+        for cell, resume, fut in futures:
+            done(cell, resume, fut.exception())
+    return out

@@ -1,0 +1,258 @@
+"""The study's ``report.md``: Table III beside the paper's, the comparisons, mode B's stage 1
+against its final weights, the budget, the machine and the wall time.
+
+The numbers come from :mod:`memrl.evaluation.stats` (the same seeded bootstrap as
+``memrl.report``), so re-reporting an unchanged study writes the same file except its
+wall-time and date lines.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from memrl.evaluation import stats, tables
+from memrl.evaluation.periodic import PERIODIC_CSV
+from memrl.evaluation.results import EvalResult
+from memrl.studies.evaluation import STAGE1_SUFFIX
+from memrl.studies.grid import Cell
+
+WALL_PREFIX = "- wall time:"
+DATE_PREFIX = "- written:"
+"""The lines of ``report.md`` that differ between two reports of the same study."""
+
+
+@dataclass
+class ReportInputs:
+    """Everything ``report.md`` says."""
+
+    name: str
+    command: str
+    cells: list[Cell]
+    finished: list[Cell]
+    failed: dict[str, str]
+    runs: list[EvalResult]
+    stage1: list[EvalResult]
+    baselines: list[EvalResult]
+    protocol: dict[str, Any]
+    stats: stats.StatsConfig
+    comparisons: list[list[str]]
+    figures: list[Path]
+    wall_s: float
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; else what ``platform`` says)."""
+    info = Path("/proc/cpuinfo")
+    if info.is_file():
+        for line in info.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def machine(cells: Sequence[Cell]) -> str:
+    """CPU model, cores and the training device(s)."""
+    devices = sorted({str(c.cfg.get("device", "cpu")) if c.cfg is not None else "cpu" for c in cells})
+    import torch
+
+    names = []
+    for d in devices:
+        if d == "auto":  # the trainer's choice: a GPU where there is one
+            d = "auto: " + ("cuda" if torch.cuda.is_available() else "cpu")
+        if "cuda" in d:
+            gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU here now"
+            names.append(f"{d} ({gpu})")
+        else:
+            names.append(d)
+    return f"{cpu_model()}, {os.cpu_count()} cores; training device: {', '.join(names)}"
+
+
+def _summary(cell: Cell) -> dict[str, Any]:
+    path = cell.run_dir / "summary.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _yaml(value: Any) -> str:
+    return "null" if value is None else str(value)
+
+
+def _span(values: Sequence[float], unit: str = "") -> str:
+    if not values:
+        return "\u2014"
+    lo, hi = min(values), max(values)
+    text = f"{lo:,.0f}" if lo == hi else f"{lo:,.0f}\u2013{hi:,.0f} (mean {np.mean(values):,.0f})"
+    return text + unit
+
+
+def budget(cells: Sequence[Cell], finished: Sequence[Cell]) -> list[str]:
+    """The configured budget of the runs and what they measured."""
+    set_ = sorted({f"total_frames={_yaml(c.cfg.get('total_frames'))}, "
+                   f"total_episodes={_yaml(c.cfg.get('total_episodes'))}"
+                   for c in cells if c.cfg is not None})
+    sums = [_summary(c) for c in finished]
+
+    def span(key: str, unit: str = "") -> str:
+        return _span([s[key] for s in sums], unit)
+
+    lines = [f"- budget per run: {'; '.join(set_)}",
+             f"- measured per run ({len(sums)} runs): env steps {span('frames')}, episodes "
+             f"{span('episodes')}, updates {span('updates')}, training wall {span('wall_s', ' s')}"]
+    s1 = [s["stage1"]["updates"] for s in sums if s.get("mode") == "B" and s.get("stage1")]
+    if s1:
+        lines.append(f"- mode B stage 1: {_span(s1)} updates on the prior knowledge (no env steps)")
+    return lines
+
+
+def _pct(x: float) -> str:
+    return f"{x:.0f}"
+
+
+def _fmt(cell: stats.Cell | None) -> str:
+    return "\u2014" if cell is None else tables.fmt_cell(cell, 0.95, per_unit=True)
+
+
+def stage1_section(inputs: ReportInputs) -> list[str]:
+    """Mode B rows: stage-1 weights against the final ones, and the periodic curve per run."""
+    if not inputs.stage1:
+        return []
+    s1_rows = {r.label: r for r in stats.table(inputs.stage1, inputs.stats)}
+    final_rows = {r.label: r for r in stats.table(inputs.runs, inputs.stats)}
+    lines = ["## Mode B: stage-1 weights against the final weights", "",
+             "The stage-1 network (trained on the prior knowledge only, `checkpoints/stage1.pt`) and the "
+             "final one, on the same protocol scenes: a drop after the switch to stage 2 shows here. "
+             "Mean over seeds [interval] (per-seed values).", "",
+             "| row | column | stage 1 | final | final \u2212 stage 1 (per seed) |", "|---|---|---|---|---|"]
+    for label, s1 in s1_rows.items():
+        final = final_rows.get(label[: -len(STAGE1_SUFFIX)])
+        for col in stats.COLUMNS:
+            a = s1.cells.get(col)
+            b = final.cells.get(col) if final is not None else None
+            diff = "\u2014"
+            if a is not None and b is not None and len(a.values) == len(b.values):
+                diff = ", ".join(f"{y - x:+.0f}" for x, y in zip(a.values, b.values, strict=True))
+            lines.append(f"| {label} | {tables.column_name(col)} | {_fmt(a)} | {_fmt(b)} | {diff} |")
+    lines += ["", "Periodic evaluation through stage 2 (`eval_periodic.csv`, its own scenes, "
+              "non-goal starts, survival / goal per 100 episodes):", "",
+              "| run | stage 1 (protocol) | first periodic | lowest periodic goal (env step) | last periodic "
+              "| final (protocol) |", "|---|---|---|---|---|---|"]
+    finals = {str(r.meta.get("run")): r for r in inputs.runs}
+    for r in inputs.stage1:
+        run = Path(str(r.meta["run"]))
+        periodic = _periodic(run)
+        ng = r.scores.get("non_goal")
+        f = finals.get(str(run))
+        fng = f.scores.get("non_goal") if f is not None else None
+        first_s = f"{_pct(ng.survival_score)} / {_pct(ng.goal_score)}" if ng else "\u2014"
+        fin = f"{_pct(fng.survival_score)} / {_pct(fng.goal_score)}" if fng else "\u2014"
+        if periodic:
+            first, last = periodic[0], periodic[-1]
+            low = min(periodic, key=lambda x: (x["goal_non_goal"], x["env_steps"]))
+            cells = [f"{_pct(first['survival_non_goal'])} / {_pct(first['goal_non_goal'])} "
+                     f"(step {first['env_steps']:.0f})",
+                     f"{_pct(low['goal_non_goal'])} (step {low['env_steps']:.0f})",
+                     f"{_pct(last['survival_non_goal'])} / {_pct(last['goal_non_goal'])} "
+                     f"(step {last['env_steps']:.0f})"]
+        else:
+            cells = ["no periodic evaluation (train with eval.every > 0)", "", ""]
+        lines.append(f"| {run.name} | {first_s} | " + " | ".join(cells) + f" | {fin} |")
+    return lines + [""]
+
+
+def _periodic(run: Path) -> list[dict[str, float]]:
+    import csv
+
+    path = run / PERIODIC_CSV
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(f)]
+
+
+def comparisons(inputs: ReportInputs, results: Sequence[EvalResult]) -> list[str]:
+    """Differences and P(a > b) of the comparisons, per column and over all columns."""
+    diffs = stats.differences(results, inputs.comparisons, inputs.stats)
+    if not diffs:
+        return []
+    pct = f"{100 * inputs.stats.confidence:g}%"
+    lines = ["## Comparisons", "",
+             f"Difference of the means [{pct} interval] and P(a > b), the probability that a seed of a "
+             f"scores above a seed of b, [{pct} interval], over seeds (stratified bootstrap).", "",
+             "| comparison | column | difference | P(a > b) |", "|---|---|---|---|"]
+    for d in diffs:
+        col = "all columns" if d.column == stats.ALL else tables.column_name(d.column)
+        over = "\u2020" if d.cell.over == "episodes" else ""
+        lines.append(f"| {d.a} \u2212 {d.b} | {col} | {d.cell.mean:+.1f} [{d.cell.low:.1f}, "
+                     f"{d.cell.high:.1f}]{over} | {tables.fmt_p(d)} |")
+    return lines + ["", tables.verdict(diffs, pct), ""]
+
+
+def stage_figure(finished: Sequence[Cell], runs: Sequence[EvalResult], stage1: Sequence[EvalResult],
+                 path: Path, cfg: stats.StatsConfig, n_resamples: int = 2000) -> Path | None:
+    """Mode B's periodic evaluation through stage 2 between the protocol scores (non-goal
+    survival, goal) of its stage-1 and final weights (:func:`memrl.evaluation.figures.stage_switch`)."""
+    from memrl.evaluation.figures import find_training_runs, stage_switch
+
+    def scores(results: Sequence[EvalResult], suffix: str = "") -> dict[str, list[tuple[float, float]]]:
+        out: dict[str, list[tuple[float, float]]] = {}
+        for r in results:
+            if "non_goal" in r.scores and r.meta.get("mode") == "B":
+                s = r.scores["non_goal"]
+                out.setdefault(r.name.removesuffix(suffix), []).append((s.survival_score, s.goal_score))
+        return out
+
+    b_runs = [c.run_dir for c in finished if c.mode == "B"]
+    if not b_runs:
+        return None
+    return stage_switch(find_training_runs(b_runs), scores(stage1, STAGE1_SUFFIX), scores(runs), path,
+                        confidence=cfg.confidence, n_resamples=n_resamples)
+
+
+def write_report(inputs: ReportInputs, path: Path) -> Path:
+    """Write ``report.md``."""
+    results = [*inputs.runs, *inputs.baselines]
+    rows = stats.table(results, inputs.stats)
+    p = inputs.protocol
+    grid = f"modes {', '.join(dict.fromkeys(c.mode for c in inputs.cells))} \u00d7 traffic " \
+           f"{', '.join(dict.fromkeys(c.opponent for c in inputs.cells))} \u00d7 seeds " \
+           f"{', '.join(str(s) for s in dict.fromkeys(c.seed for c in inputs.cells))}"
+    evals = sum(r.wall_s for r in [*results, *inputs.stage1])
+    train_wall = sum(float(_summary(c).get("wall_s", 0.0)) for c in inputs.finished)
+    lines = [f"# Study {inputs.name}: Table III from trained agents", "",
+             f"- command: `{inputs.command}`",
+             f"- grid: {grid} ({len(inputs.finished)} of {len(inputs.cells)} runs finished); baselines: "
+             f"{', '.join(dict.fromkeys(r.name for r in inputs.baselines)) or 'none'}",
+             *budget(inputs.cells, inputs.finished),
+             f"- protocol: {p['episodes']} episodes per initial lane ({', '.join(p['initial_lanes'])}), "
+             f"{p['vehicles_count'][0]}\u2013{p['vehicles_count'][1]} other cars, {p['duration']} steps, "
+             f"scene seed {p['seed']}",
+             f"- machine: {machine(inputs.cells)}",
+             f"- total: training {train_wall:,.0f} s (sum over runs), evaluation {evals:,.0f} s",
+             f"{WALL_PREFIX} {inputs.wall_s:,.0f} s for this call",
+             f"{DATE_PREFIX} {time.strftime('%Y-%m-%d %H:%M:%S %Z')}", ""]
+    if inputs.failed:
+        lines += ["**Failed runs** (not in the table; tracebacks in `runs/<run>/train.log`; the same "
+                  "command tries them again):", ""]
+        lines += [f"- {name}: {err}" for name, err in inputs.failed.items()] + [""]
+    missing = [c.name for c in inputs.cells if c not in inputs.finished and c.name not in inputs.failed]
+    if missing:
+        lines += [f"Not finished: {', '.join(missing)}.", ""]
+    lines += ["## Table III: survival and goal scores (per 100 episodes)", "",
+              tables.side_by_side(rows, inputs.stats.confidence), *comparisons(inputs, results),
+              *stage1_section(inputs), "## Figures", ""]
+    lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
+    lines += ["## Files", "",
+              "`table3.csv` (this table, long format, with the paper's column), `table3.md` and "
+              "`differences.csv` (every comparison), `report.json` (all numbers and sources), "
+              "`study.json` (the grid), `runs/<mode>_<traffic>_s<seed>/` (each run and its `eval/`), "
+              "`stage1/` (mode B's stage-1 evaluations), `baselines/`.", ""]
+    path.write_text("\n".join(lines))
+    return path

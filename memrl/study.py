@@ -1,0 +1,196 @@
+"""``python -m memrl.study [study.modes=[...]] [study.seeds=[...]] study.train_overrides=[...]``.
+
+Table III from real training, in one folder (``study.dir``): every (mode, opponent, seed) run
+under ``runs/``, its evaluation on the protocol (``runs/<run>/eval/``), mode B's stage-1
+weights evaluated too (``stage1/``), the scripted and random baselines (``baselines/``), then
+``report.md``, ``table3.csv`` and the figures. The same command again resumes: finished runs
+are skipped, killed ones resume from their last checkpoint, finished evaluations are reused,
+and a finished study is only reported again. Pieces: :mod:`memrl.studies`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shlex
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from memrl.cli import run_hydra, run_task
+from memrl.configs import register_configs
+from memrl.errors import config_error
+from memrl.schemas import check_study
+
+if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
+    from memrl.studies.grid import Cell
+
+log = logging.getLogger(__name__)
+
+STUDY_JSON = "study.json"
+"""The study's own record: the grid and the train overrides it was made with."""
+
+
+@dataclass
+class StudyResult:
+    """What a call of :func:`study` did and wrote."""
+
+    dir: Path
+    report: Path
+    table_csv: Path
+    skipped: list[str] = field(default_factory=list)
+    """Runs finished before this call."""
+    trained: list[str] = field(default_factory=list)
+    resumed: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+    evaluated: list[str] = field(default_factory=list)
+    """Evaluation folders written by this call."""
+    reused: list[str] = field(default_factory=list)
+    figures: list[Path] = field(default_factory=list)
+    wall_s: float = 0.0
+    command: str = ""
+
+
+def command_line(cfg: DictConfig) -> str:
+    """The command that made this call, quoted for a POSIX shell: Hydra's overrides, or the
+    study keys of a typed call."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        args = [str(a) for a in HydraConfig.get().overrides.task]
+    else:
+        s = cfg.study
+        args = [f"study.dir={s.dir}", f"study.modes=[{','.join(s.modes)}]",
+                f"study.seeds=[{','.join(map(str, s.seeds))}]",
+                f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
+                f"study.train_overrides={json.dumps(list(s.train_overrides))}"]
+        protocol: dict[str, Any] = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
+        args += [f"protocol.{k}={json.dumps(v).replace(' ', '')}" for k, v in protocol.items()]
+    return " ".join(["python -m memrl.study", *(shlex.quote(a) for a in args)])
+
+
+def check_record(folder: Path, cfg: DictConfig) -> None:
+    """Refuse a study folder made with other train overrides (unless ``allow_changes``), then
+    record this call's grid in ``study.json``."""
+    s = cfg.study
+    file = folder / STUDY_JSON
+    now = [str(o) for o in s.train_overrides]
+    doc = json.loads(file.read_text()) if file.is_file() else {}
+    before = doc.get("train_overrides", now)
+    if before != now and not s.allow_changes:
+        raise config_error("study.train_overrides", f"the study {folder} was made with {before}, this "
+                           f"call gives {now}; give the same, another study.dir, or study.allow_changes=true "
+                           "(finished runs are then kept as they are)")
+    history = doc.get("changes", [])
+    if before != now:
+        history.append({"from": before, "to": now, "at": time.strftime("%Y-%m-%d %H:%M:%S")})
+    record = {"train_overrides": now, "modes": list(s.modes), "seeds": list(s.seeds),
+              "opponents": list(s.opponents), "baselines": list(s.baselines),
+              "protocol": OmegaConf.to_container(cfg.protocol, resolve=True), "changes": history}
+    folder.mkdir(parents=True, exist_ok=True)
+    file.write_text(json.dumps(record, indent=2))
+
+
+def _quote(items: list[str]) -> str:
+    """A Hydra list override of quoted strings (labels hold spaces and brackets)."""
+    return "[" + ",".join("'" + i.replace("'", "\\'") + "'" for i in items) + "]"
+
+
+def report_config(cfg: DictConfig, folders: list[Path], labels: list[str],
+                  comparisons: list[list[str]]) -> DictConfig:
+    """The report config of the study: its folders, its rows, the user's report overrides."""
+    from memrl.studies.grid import compose_config
+
+    overrides = [f"runs={_quote([str(f) for f in folders])}", "evaluate_missing=false",
+                 f"progress={str(bool(cfg.study.progress)).lower()}",
+                 f"comparisons=[{','.join(_quote(p) for p in comparisons)}]",
+                 f"rollouts.rows={_quote(labels)}", "rollouts.video=false",
+                 *[str(o) for o in cfg.study.report_overrides]]
+    return compose_config("report", overrides)
+
+
+def _label(cell: Cell) -> str:
+    return cell.mode + ("" if cell.opponent == "constant" else f" ({cell.opponent})")
+
+
+def study(cfg: DictConfig) -> StudyResult:
+    """Train, evaluate and report the grid of ``cfg.study`` in ``cfg.study.dir`` (resuming).
+
+    Args:
+        cfg: the composed ``study`` config.
+    """
+    from memrl.evaluation.protocol import check_protocol
+    from memrl.report import report, stats_config
+    from memrl.schemas import check_train
+    from memrl.studies import evaluation as ev
+    from memrl.studies.grid import cells, run_cells
+    from memrl.studies.report import ReportInputs, stage_figure, write_report
+
+    start = time.perf_counter()
+    check_study(cfg)
+    s = cfg.study
+    folder = Path(str(s.dir))
+    grid = cells(s, folder / "runs")  # a bad train override stops here, before any write
+    for cell in grid:
+        assert cell.cfg is not None
+        check_train(cell.cfg)
+    check_record(folder, cfg)
+    outcome = run_cells(grid, int(s.jobs))
+    finished = [c for c in grid if c.finished()]
+
+    settings = ev.EvalSettings(check_protocol(cfg.protocol), int(s.workers), int(s.batch), bool(s.progress))
+    evals = ev.Evaluations()
+    for cell in finished:
+        ev.evaluate_run(cell.run_dir, settings, evals)
+        if s.stage1 and cell.mode == "B":
+            ev.evaluate_stage1(cell.run_dir, folder / "stage1" / cell.name, settings, evals)
+    for name in s.baselines:
+        ev.evaluate_baseline(str(name), grid[0].cfg.env, folder / "baselines" / str(name),  # type: ignore[union-attr]
+                             settings, evals)
+
+    labels = list(dict.fromkeys(_label(c) for c in finished))
+    pairs = [[f"{m}{sfx}", f"Default{sfx}"] for m in ("B", "A") for sfx in
+             dict.fromkeys(_label(c)[len(c.mode):] for c in grid) if f"Default{sfx}" in labels
+             and f"{m}{sfx}" in labels]
+    folders = [c.run_dir for c in finished] + [folder / "baselines" / str(b) for b in s.baselines]
+    result = StudyResult(folder, folder / "report.md", folder / "table3.csv", outcome.skipped,
+                         outcome.trained, outcome.resumed, outcome.failed, evals.made, evals.reused,
+                         command=command_line(cfg))
+    if not folders:
+        raise RuntimeError(f"study {folder}: no run finished and no baseline to report")
+    rcfg = report_config(cfg, folders, labels + [str(b) for b in s.baselines if b == "scripted"], pairs)
+    files = report(rcfg, out_dir=folder)
+    scfg = stats_config(rcfg)
+    switch = stage_figure(finished, evals.runs, evals.stage1, folder / "fig_stage2.png", scfg,
+                          int(rcfg.curve_resamples))
+    result.figures = [f for f in [files.fig5, switch, *files.strips] if f is not None]
+    result.wall_s = time.perf_counter() - start
+    protocol: dict = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
+    write_report(ReportInputs(str(s.name), result.command, grid, finished, outcome.failed, evals.runs,
+                              evals.stage1, evals.baselines, protocol, scfg, pairs,
+                              result.figures, result.wall_s), result.report)
+    log.info("study %s: %d runs skipped, %d trained, %d resumed, %d failed; %d evaluations made, "
+             "%d reused; report in %s", folder, len(result.skipped), len(result.trained),
+             len(result.resumed), len(result.failed), len(result.evaluated), len(result.reused),
+             result.report)
+    print(f"wrote {result.report}")
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="study")
+def main(cfg: DictConfig) -> None:
+    result = run_task(study, cfg)
+    if result is not None and result.failed:
+        print(f"study: {len(result.failed)} runs failed: " + "; ".join(
+            f"{k}: {v}" for k, v in result.failed.items()), file=sys.stderr)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    register_configs()
+    run_hydra(main)

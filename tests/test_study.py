@@ -1,0 +1,186 @@
+"""``memrl.study``: a tiny real study end to end, re-run (nothing retrains, same report), a
+killed run resumed, the grid-change refusal, and the command line once.
+
+The tests of one study share its folder (module fixture) and run in file order: the last one
+kills a run of it.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from memrl.errors import ConfigError
+from memrl.studies.report import DATE_PREFIX, WALL_PREFIX
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAIN = ["+experiment=smoke", "total_frames=64", "agent.warmup_frames=16", "buffer.capacity=200",
+         "mode.stage1.max_updates=4", "mode.stage1.check_every=2", "env.duration=30", "logger=none",
+         "checkpoint_every=1", "eval.every=1", "eval.episodes=1"]
+"""The smoke preset shrunk to seconds per run, with a periodic evaluation every episode."""
+
+
+def quoted(items: list[str]) -> str:
+    """A Hydra list of quoted strings (``+x=y`` needs the quotes inside a list)."""
+    return "[" + ",".join(f"'{i}'" for i in items) + "]"
+
+
+def study_overrides(folder: Path, train: list[str] = TRAIN, modes: str = "[Default,B]",
+                    report: tuple[str, ...] = ()) -> list[str]:
+    return [f"study.dir={folder}", f"study.modes={modes}", "study.seeds=[0,1]",
+            f"study.train_overrides={quoted(train)}", "study.workers=1", "study.progress=false",
+            f"study.report_overrides={quoted(['n_resamples=200', 'curve_resamples=50', *report])}",
+            "protocol.episodes=2", "protocol.duration=30"]
+
+
+def without_volatile(text: str) -> list[str]:
+    return [x for x in text.splitlines() if not x.startswith((WALL_PREFIX, DATE_PREFIX))]
+
+
+@pytest.fixture(scope="module")
+def first(tmp_path_factory):
+    """A 2 modes x 2 seeds study, run once."""
+    from hydra import compose, initialize_config_dir
+
+    from memrl.configs import register_configs
+    from memrl.study import study
+
+    folder = tmp_path_factory.mktemp("study") / "s"
+    register_configs()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("study", study_overrides(folder))
+    return cfg, study(cfg)
+
+
+def test_a_tiny_study_trains_evaluates_and_reports(first):
+    _, result = first
+    folder = result.dir
+    assert sorted(result.trained) == ["B_constant_s0", "B_constant_s1", "Default_constant_s0",
+                                      "Default_constant_s1"]
+    assert result.failed == {} and result.skipped == []
+    for run in result.trained:
+        assert (folder / "runs" / run / "eval" / "eval.json").is_file()
+        assert (folder / "runs" / run / "train.log").stat().st_size > 0
+    for name in ("scripted", "random"):
+        assert (folder / "baselines" / name / "eval.json").is_file()
+    with result.table_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    assert {r["method"] for r in rows} == {"Default", "B", "scripted", "random"}
+    paper = {(r["method"], r["initial_lane"], r["metric"]): r["paper"] for r in rows}
+    assert paper[("B", "non_goal", "goal")] == "48" and paper[("Default", "random", "survival")] == "53"
+    assert paper[("scripted", "random", "goal")] == ""
+    md = result.report.read_text()
+    for text in ("| B | 2 |", "| Default | 2 |", "B \u2212 Default", "P(B > Default)", "| B stage 1 |",
+                 "B_constant_s1", "machine:", "budget per run: total_frames=64", result.command):
+        assert text in md, text
+    assert (folder / "fig5.png").is_file() and (folder / "study.json").is_file()
+    assert (folder / "fig_stage2.png").is_file() and (folder / "fig7_B.png").is_file()
+    assert "![fig_stage2](fig_stage2.png)" in md
+
+
+def test_stage1_weights_are_evaluated_from_the_loss_module(first):
+    from memrl.checkpoint import load_stage1_qnet
+
+    _, result = first
+    run = result.dir / "runs" / "B_constant_s0"
+    state = torch.load(run / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
+    net = load_stage1_qnet(run)
+    online = {k: v for k, v in state.items() if k.startswith("value_network_params.")}
+    assert len(online) == len(net.state_dict())
+    assert all(any(torch.equal(v, w) for w in online.values()) for v in net.state_dict().values())
+    doc = json.loads((result.dir / "stage1" / "B_constant_s0" / "eval.json").read_text())
+    assert doc["name"] == "B stage 1" and doc["meta"]["run"] == str(run)
+
+
+def test_running_it_again_retrains_nothing_and_writes_the_same_report(first):
+    from memrl.study import study
+
+    cfg, result = first
+    runs = sorted((result.dir / "runs").glob("*/checkpoints/final.pt"))
+    before = {p: p.stat().st_mtime_ns for p in runs}
+    evals = {p: p.stat().st_mtime_ns for p in result.dir.glob("**/eval.json")}
+    text = result.report.read_text()
+    again = study(cfg)
+    assert again.trained == [] and again.resumed == [] and sorted(again.skipped) == sorted(result.trained)
+    assert again.evaluated == [] and len(again.reused) == 8  # 4 runs, 2 stage-1 weights, 2 baselines
+    assert {p: p.stat().st_mtime_ns for p in runs} == before
+    assert {p: p.stat().st_mtime_ns for p in result.dir.glob("**/eval.json")} == evals
+    assert without_volatile(again.report.read_text()) == without_volatile(text)
+
+
+def test_a_killed_run_resumes_and_only_it(first):
+    from memrl.study import study
+
+    cfg, result = first
+    run = result.dir / "runs" / "B_constant_s1"
+    (run / "summary.json").unlink()  # as if killed after its last checkpoint
+    (run / "checkpoints" / "final.pt").unlink()
+    again = study(cfg)
+    assert again.resumed == ["B_constant_s1"] and again.trained == [] and len(again.skipped) == 3
+    assert again.evaluated == [str(run / "eval")]  # its stage-1 weights did not change
+    assert (run / "summary.json").is_file() and "| B | 2 |" in again.report.read_text()
+
+
+def test_changing_the_train_overrides_of_a_study_is_refused(tmp_path, compose_cfg):
+    from memrl.study import check_record, study
+
+    folder = tmp_path / "s"
+    check_record(folder, compose_cfg("study", study_overrides(folder)))
+    changed = compose_cfg("study", study_overrides(folder, [*TRAIN, "agent.lr=0.001"]))
+    with pytest.raises(ConfigError, match="study.train_overrides") as info:
+        study(changed)
+    assert "\n" not in str(info.value) and "allow_changes" in str(info.value)
+    assert sorted(p.name for p in folder.iterdir()) == ["study.json"]  # nothing trained
+    allowed = compose_cfg("study", [*study_overrides(folder, [*TRAIN, "agent.lr=0.001"]),
+                                    "study.allow_changes=true"])
+    check_record(folder, allowed)
+    doc = json.loads((folder / "study.json").read_text())
+    assert doc["train_overrides"][-1] == "agent.lr=0.001" and len(doc["changes"]) == 1
+
+
+def test_train_overrides_reach_every_run_and_the_grid_keys_are_its_own(tmp_path, compose_cfg):
+    from memrl.studies.grid import cells
+
+    train = [*TRAIN, "agent.lr=0.0005", "env.num_envs=2", "device=cpu"]
+    cfg = compose_cfg("study", [*study_overrides(tmp_path, train, "[A,B]"), "study.opponents=[constant]"])
+    grid = cells(cfg.study, tmp_path / "runs")
+    assert [c.name for c in grid] == ["A_constant_s0", "A_constant_s1", "B_constant_s0", "B_constant_s1"]
+    assert all(c.cfg.agent.lr == 0.0005 and c.cfg.total_frames == 64 for c in grid)
+    assert all(c.cfg.env.num_envs == 2 and c.cfg.device == "cpu" for c in grid)
+    assert [c.cfg.mode.name for c in grid] == ["A", "A", "B", "B"] and grid[1].cfg.seed == 1
+
+
+def test_jobs_train_in_spawned_processes_and_a_failing_run_lets_the_others_finish(tmp_path):
+    from omegaconf import OmegaConf
+
+    from memrl.studies.grid import Cell, run_cells
+    from tests.study_helpers import fake_trainer
+
+    grid = [Cell("Default", "constant", s, tmp_path / f"Default_constant_s{s}", [], OmegaConf.create({}))
+            for s in (0, 1, 2)]
+    out = run_cells(grid, jobs=2, trainer=fake_trainer)
+    assert out.trained == ["Default_constant_s0", "Default_constant_s2"]
+    assert out.failed == {"Default_constant_s1": "RuntimeError: Default_constant_s1 diverged"}
+    again = run_cells(grid, jobs=2, trainer=fake_trainer)
+    assert again.skipped == out.trained and list(again.failed) == ["Default_constant_s1"]
+
+
+def test_the_command_line_runs_a_study(tmp_path):
+    folder = tmp_path / "cli"
+    args = [*study_overrides(folder, modes="[Default]", report=("rollouts.rows=[]",)),
+            "study.seeds=[0]", "study.baselines=[random]"]
+    env = {**os.environ, "MEMRL_ROOT": str(tmp_path), "SDL_VIDEODRIVER": "dummy"}
+    proc = subprocess.run([sys.executable, "-m", "memrl.study", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (folder / "runs" / "Default_constant_s0" / "summary.json").is_file()
+    md = (folder / "report.md").read_text()
+    assert "| Default | 1 |" in md and "| random | 1 |" in md
+    assert (folder / "study.log").is_file() and "python -m memrl.study study.dir=" in md
