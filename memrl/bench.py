@@ -66,11 +66,18 @@ def _stage1(cfg: DictConfig) -> dict[str, Any]:
     return stage1_check.run(**values)
 
 
+def _eval(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import eval_speed
+
+    return eval_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
 BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "stage1": _stage1,
                                                                  "opponents": _opponents,
                                                                  "learner": _learner,
                                                                  "memory": _memory,
-                                                                 "e2e": _e2e, "batched": _batched}
+                                                                 "e2e": _e2e, "batched": _batched,
+                                                                 "eval": _eval}
 
 
 def machine() -> dict[str, Any]:

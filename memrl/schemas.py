@@ -316,7 +316,7 @@ def check_deploy(cfg: DictConfig) -> None:
 # ---------------------------------------------------------------------------------------------
 # bench
 
-BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1")
+BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1", "eval")
 
 
 @dataclass
@@ -394,6 +394,20 @@ class BatchedBench:
 
 
 @dataclass
+class EvalBench:
+    episodes: int = spec(ge=1)
+    duration: int = spec(ge=1)
+    vehicles_count: list[int] = spec(ge=0, nonempty=True)
+    seed: int = spec(ge=0, le=SEED_MAX)
+    net_seed: int = spec(ge=0, le=SEED_MAX)
+    idle_bias: list[float] = spec(ge=0, nonempty=True)
+    gym_batch: int = spec(ge=1)
+    engine_batch: int | None = spec(ge=1)
+    threads: int = spec(ge=1)
+    device: str = MISSING
+
+
+@dataclass
 class BenchSchema:
     """``conf/bench.yaml``: side-by-side benchmarks."""
 
@@ -407,6 +421,7 @@ class BenchSchema:
     memory: MemoryBench = field(default_factory=MemoryBench)
     e2e: E2EBench = field(default_factory=E2EBench)
     stage1: Stage1Bench = field(default_factory=Stage1Bench)
+    eval: EvalBench = field(default_factory=EvalBench)
     debug: bool = MISSING
     paths: Any = MISSING
 

@@ -143,6 +143,7 @@ ROWS = [
     ("bench", ["memory.transitions=0"], "memory.transitions"),
     ("bench", ["e2e.total_frames=0"], "e2e.total_frames"),
     ("bench", ["stage1.updates=0"], "stage1.updates"),
+    ("bench", ["eval.episodes=0"], "eval.episodes"),
     ("bench", ["debug=maybe"], "debug"),
     # preview
     ("preview", ["seed=-1"], "seed"),

@@ -6,7 +6,6 @@ take effect instantly and it sees the true state, as in training.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
@@ -14,7 +13,7 @@ import numpy as np
 from memrl.control.episode import gray
 from memrl.control.metrics import overshoot_of
 from memrl.envs.lane_change import LaneChangeEnv
-from memrl.modules.policy import DrivingPolicy
+from memrl.modules.policy import DrivingPolicy, FrameStack
 
 
 def simulator_episode(env: LaneChangeEnv, policy: DrivingPolicy, seed: int,
@@ -22,13 +21,14 @@ def simulator_episode(env: LaneChangeEnv, policy: DrivingPolicy, seed: int,
     """One episode in ``env`` as is; returns collided, reached_target, success, overshoot [m]."""
     obs, _ = env.reset(seed=seed)
     policy.reset(env)
-    frames = deque([gray(obs)] * frame_stack, maxlen=frame_stack)
+    stack = FrameStack(frame_stack)
+    frames = stack.reset(gray(obs)[None])
     start_y = float(env.vehicle.position[1])
     ys, collided = [start_y], False
-    while True:
-        action = int(policy.act(env, np.stack(frames)))
+    while True:  # the evaluation runners' loop, plus the lateral positions and gray RGB frames
+        action = int(policy.act(env, frames))
         obs, _, terminated, truncated, info = env.step(action)
-        frames.append(gray(obs))
+        frames = stack.push(gray(obs)[None])
         ys.append(float(env.vehicle.position[1]))
         collided = collided or bool(info["collided"])
         if terminated or truncated:

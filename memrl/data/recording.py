@@ -13,7 +13,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDict
 from tqdm import tqdm
@@ -23,7 +22,7 @@ from memrl.data.transitions import to_transitions
 from memrl.envs.config import LaneChangeConfig
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
-from memrl.modules.policy import DrivingPolicy, PerturbedPolicy, PolicyModule, StopRecording
+from memrl.modules.policy import DrivingPolicy, FrameStack, PerturbedPolicy, PolicyModule, StopRecording
 
 log = logging.getLogger(__name__)
 
@@ -159,19 +158,19 @@ def drive_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, seeds: Iterable[int],
     same seeds, without the TorchRL pipeline (about 6x faster), for measuring policies that
     read the world state. ``pixels`` are still passed as a stack of the last frames.
     """
-    # Hand-written: TorchRL's rollout costs more than the whole env step here; the frame stack
-    # matches CatFrames (padded with the first frame after a reset).
+    # Hand-written: TorchRL's rollout costs more than the whole env step here.
     env = LaneChangeEnv(config=env_config_values(env_cfg))
+    stack = FrameStack(frame_stack)
     out = []
     try:
         for seed in seeds:
             obs, _ = env.reset(seed=seed)
-            frames = np.repeat(obs, frame_stack, axis=0)
+            stack.reset(obs)
             policy.reset(env)
             total, done, info = 0.0, False, {}
             while not done:
-                obs, reward, terminated, truncated, info = env.step(policy.act(env, frames))
-                frames = np.concatenate([frames[1:], obs])
+                obs, reward, terminated, truncated, info = env.step(policy.act(env, stack.frames))  # type: ignore[arg-type]
+                stack.push(obs)
                 total += float(reward)
                 done = terminated or truncated
             out.append(EpisodeStats(seed=int(seed), steps=env.steps, episode_return=total,

@@ -78,25 +78,30 @@ def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
     }
 
 
-def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int],
-                 batch: int = 10) -> dict[str, int]:
+def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int], batch: int = 10, *,
+                 device: torch.device | str | None = None) -> dict[str, int]:
     """The behaviour itself: the greedy agent drives one non-goal episode among 0-5
     constant-speed cars (the protocol's rules on the run's env) per reset seed; returns the
-    counts of ``survived``, ``reached`` (the target lane) and ``both`` in the same episode."""
+    counts of ``survived``, ``reached`` (the target lane) and ``both`` in the same episode.
+
+    The episodes run on the batched engine, all at once on ``device`` (None: the network's
+    device; ``batch``: envs in lockstep on the gym path, used only when the engine cannot draw
+    the env's frames)."""
     protocol = ProtocolConfig(episodes=len(seeds), initial_lanes=["non_goal"],
                               duration=int(env_cfg.get("duration", 300)))  # the run's length
     job = Job(protocol_env(env_cfg, protocol, "non_goal"), "non_goal", list(enumerate(seeds)))
-    records = run_jobs(GreedyActor(qnet), [job], batch=batch).records  # type: ignore[arg-type]
+    device = device if device is not None else next(qnet.parameters()).device
+    records = run_jobs(GreedyActor(qnet), [job], batch=batch, device=device).records  # type: ignore[arg-type]
     return {"survived": sum(r.survived for r in records), "reached": sum(r.goal for r in records),
             "both": sum(r.survived and r.goal for r in records)}
 
 
 def drive_check(qnet: torch.nn.Module, env_cfg: Any, episodes: int, seed: int = 0,
-                batch: int = 10) -> dict[str, int]:
+                batch: int = 10, *, device: torch.device | str | None = None) -> dict[str, int]:
     """:func:`drive_counts` over ``episodes`` scenes of their own seed domain (``stage1``),
     apart from the training, periodic and Table III scenes, so choosing weights by it does
     not tune on the test scenes."""
-    return drive_counts(qnet, env_cfg, scenario_seeds(seed, episodes, domain="stage1"), batch)
+    return drive_counts(qnet, env_cfg, scenario_seeds(seed, episodes, domain="stage1"), batch, device=device)
 
 
 def stop_reason(cfg: Stage1Config, progress: Stage1Progress) -> str:

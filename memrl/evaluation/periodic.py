@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
@@ -31,7 +32,8 @@ PERIODIC_CSV = "eval_periodic.csv"
 
 def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, episodes: int = 10,
                   seed: int = 0, *, initial_lanes: Sequence[str] = INITIAL_LANES,
-                  duration: int | None = None, batch: int = 10) -> dict[str, float]:
+                  duration: int | None = None, batch: int = 10,
+                  device: torch.device | str | None = None) -> dict[str, float]:
     """Greedy episodes of ``qnet`` in this process; returns the metrics of one CSV row.
 
     Args:
@@ -42,7 +44,9 @@ def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, epis
         seed: base of the scene seeds (domain ``periodic``).
         initial_lanes: settings to evaluate.
         duration: steps per episode (None: the env config's ``duration``).
-        batch: episodes stepped together.
+        batch: episodes stepped together on gym envs (the greedy network runs on the batched
+            engine instead, all episodes at once).
+        device: where the engine and the network copy run (None: the network's device).
 
     Returns:
         ``survival_<lane>``, ``goal_<lane>`` (per 100 episodes), ``return_<lane>``,
@@ -54,7 +58,9 @@ def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, epis
     seeds = list(enumerate(scenario_seeds(seed, episodes, domain="periodic")))
     jobs = [Job(protocol_env(env, protocol, lane), lane, seeds) for lane in initial_lanes]  # type: ignore[arg-type]
     start = time.perf_counter()
-    records = run_jobs(GreedyActor(qnet), jobs, workers=1, batch=batch).records  # type: ignore[arg-type]
+    device = device if device is not None else next(qnet.parameters()).device
+    records = run_jobs(GreedyActor(qnet), jobs, workers=1, batch=batch,  # type: ignore[arg-type]
+                       device=device).records
     out: dict[str, float] = {}
     for lane in initial_lanes:
         s = score(r for r in records if r.initial_lane == lane)
@@ -72,15 +78,17 @@ class PeriodicEvaluation:
         env_cfg: the training env config.
         run_dir: the run folder; rows go to ``eval_periodic.csv`` there.
         logger: a TorchRL logger (``log_scalar``) or None.
+        device: where the evaluation episodes run (the batched engine and the network copy;
+            None: the network's device).
     """
 
     def __init__(self, cfg: Mapping[str, Any] | DictConfig | None, env_cfg: Mapping[str, Any] | DictConfig,
-                 run_dir: Path, logger: Any | None = None) -> None:
+                 run_dir: Path, logger: Any | None = None, device: torch.device | str | None = None) -> None:
         values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg or {})
         self.cfg = PeriodicEvalConfig(**values)  # type: ignore[arg-type]
         if self.cfg.every < 0 or self.cfg.episodes < 1:
             raise ValueError(f"config 'eval': need every >= 0 and episodes >= 1, got {self.cfg}")
-        self.env_cfg, self.logger = env_cfg, logger
+        self.env_cfg, self.logger, self.device = env_cfg, logger, device
         self.table = CsvTable(run_dir / PERIODIC_CSV, PERIODIC_FIELDS) if self.cfg.every else None
 
     def after_episode(self, qnet: nn.Module, episodes: int, env_steps: int) -> dict[str, float] | None:
@@ -88,7 +96,8 @@ class PeriodicEvaluation:
         if self.table is None or episodes % self.cfg.every:
             return None
         metrics = periodic_eval(qnet, self.env_cfg, self.cfg.episodes, self.cfg.seed,
-                                initial_lanes=self.cfg.initial_lanes, batch=self.cfg.batch)
+                                initial_lanes=self.cfg.initial_lanes, batch=self.cfg.batch,
+                                device=self.device)
         row = {"episode": episodes, "env_steps": env_steps, **{k: round(v, 4) for k, v in metrics.items()}}
         self.table.append({k: row.get(k, "") for k in PERIODIC_FIELDS})
         if self.logger is not None:

@@ -1,10 +1,16 @@
-"""Evaluation episodes, fast: gym envs stepped in lockstep batches, in worker processes.
+"""Evaluation episodes, fast: one entry point (:func:`run_jobs`), two ways to step them.
 
-Observations are exactly those of the TorchRL pipeline (``make_env``): the env's grayscale
-BEV frame, the last ``frame_stack`` of them stacked oldest first, the first frame repeated
-after a reset (``CatFrames``' padding); ``tests/test_evaluate.py`` checks the equality step by
-step. The pipeline itself is not used here because its per-step overhead costs more than
-the env step, and a batch of envs lets a Q-network act on all of them in one forward pass.
+* Actors that act from pixels alone (``Actor.tensor_policy``, e.g. the greedy Q-network) run
+  on the batched engine (:mod:`memrl.evaluation.engine_runner`): every episode of the jobs
+  at once, one forward pass per step, on any device.
+* The others (the scripted driver reads the world state, a human needs the window, a step
+  hook renders the scene) run gym envs in lockstep batches, in worker processes.
+
+Both give the same :class:`EpisodeRecord` s (``tests/test_engine_runner.py``). Observations are
+exactly those of the TorchRL pipeline (``make_env``): the env's grayscale BEV frame, the last
+``frame_stack`` of them stacked oldest first, the first frame repeated after a reset
+(``CatFrames``' padding); ``tests/test_evaluate.py`` checks the equality step by step. The
+pipeline itself is not used here because its per-step overhead costs more than the env step.
 """
 
 from __future__ import annotations
@@ -12,83 +18,25 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing as mp
-from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import contextmanager
-from dataclasses import dataclass, field
-from typing import Any
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_jobs_on_engine
+from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
-from memrl.modules.policy import StopRecording
+from memrl.modules.policy import FrameStack, StopRecording
+
+__all__ = ["Actor", "FrameStack", "Job", "JobResult", "StepHook", "run_job", "run_jobs", "split",
+           "torch_threads"]
 
 log = logging.getLogger(__name__)
-
-StepHook = Callable[[LaneChangeEnv, np.ndarray, int | None, EpisodeRecord | None], None]
-"""Called after each reset (action None) and each step (the action taken) with the env and
-the stacked pixels; the last call of an episode also gets its finished record."""
-
-
-class Actor(ABC):
-    """Chooses the actions of several episodes stepped together (slot = place in the batch)."""
-
-    batchable: bool = True
-    """May drive several envs in lockstep."""
-    parallel: bool = True
-    """May run in worker processes (picklable, opens no window)."""
-    needs_render: bool = False
-    """Needs ``render_mode='rgb_array'`` (full-scene pictures)."""
-
-    def begin(self, slot: int, env: LaneChangeEnv, seed: int) -> None:  # noqa: B027
-        """A new episode starts in ``slot`` (after the env's reset with ``seed``)."""
-
-    @abstractmethod
-    def act(self, slots: Sequence[int], envs: Sequence[LaneChangeEnv], pixels: np.ndarray) -> np.ndarray:
-        """Actions (int array ``[B]``) for the running ``slots``; ``pixels`` uint8 ``[B, 4, H, W]``."""
-
-    def close(self) -> None:  # noqa: B027
-        """Release windows or other resources."""
-
-
-class FrameStack:
-    """The last ``n`` frames along the channel axis, padded with the first frame after a reset."""
-
-    # Hand-written: mirrors TorchRL's CatFrames (padding="same") on plain numpy arrays.
-    def __init__(self, n: int = 4) -> None:
-        self.n = n
-        self.frames: np.ndarray | None = None
-
-    def reset(self, obs: np.ndarray) -> np.ndarray:
-        self.frames = np.repeat(obs, self.n, axis=0)
-        return self.frames
-
-    def push(self, obs: np.ndarray) -> np.ndarray:
-        assert self.frames is not None
-        self.frames = np.concatenate([self.frames[obs.shape[0]:], obs])
-        return self.frames
-
-
-@dataclass
-class Job:
-    """Episodes of one initial-lane setting for one process."""
-
-    env: dict[str, Any]
-    """Full env config (the protocol's rules applied)."""
-    initial_lane: str
-    episodes: list[tuple[int, int]]
-    """(episode index, reset seed) pairs."""
-
-
-@dataclass
-class JobResult:
-    records: list[EpisodeRecord] = field(default_factory=list)
-    stopped_early: bool = False
-    """A human pressed Esc: the episode under way was dropped, the finished ones kept."""
 
 
 @dataclass
@@ -101,16 +49,10 @@ class _Slot:
     ret: float = 0.0
 
 
-@contextmanager
-def one_thread() -> Iterator[None]:
+def one_thread() -> AbstractContextManager[None]:
     """torch on one thread for the block: one process per core is the parallelism here, and
     torch's OpenMP threads slow down by 10x and more when the cores are busy (spin-waiting)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
+    return torch_threads(1)
 
 
 def run_job(actor: Actor, job: Job, batch: int = 8, frame_stack: int = 4,
@@ -188,13 +130,33 @@ def split(jobs: Sequence[Job], parts: int) -> list[Job]:
 
 
 def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int = 8,
-             progress: bool = False, desc: str = "evaluate") -> JobResult:
-    """Run all jobs, in ``workers`` processes when the actor allows it; records come back sorted
-    by (initial lane, episode index), whatever the split."""
+             progress: bool = False, desc: str = "evaluate", device: torch.device | str = "cpu",
+             engine_batch: int | None = None, engine: bool | None = None) -> JobResult:
+    """Run all jobs; records come back sorted by (initial lane, episode index), whatever the split.
+
+    Args:
+        actor: the policy.
+        jobs: env configs, initial lanes and (episode index, reset seed) pairs.
+        workers: gym path: processes (when the actor allows it); engine path: torch threads
+            on CPU.
+        batch: gym path: envs stepped in lockstep per process.
+        progress: show a progress bar.
+        desc: its label.
+        device: engine path: where the envs and the actor run (``auto``, ``cpu``, ``cuda[:K]``).
+        engine_batch: engine path: envs per job at once (None: all of the job's episodes).
+        engine: force (True) or forbid (False) the engine path; None: the engine for
+            ``tensor_policy`` actors on jobs it can run (:func:`engine_can_run`).
+    """
     total = sum(len(j.episodes) for j in jobs)
     bar = tqdm(total=total, desc=desc, unit="ep", disable=not progress, dynamic_ncols=True)
     out = JobResult()
-    if workers > 1 and actor.parallel:
+    use_engine = actor.tensor_policy and all(engine_can_run(j) for j in jobs) if engine is None else engine
+    if use_engine:
+        dev = resolve_device(device)
+        threads = max(1, workers) if dev.type == "cpu" else torch.get_num_threads()
+        out = run_jobs_on_engine(actor, jobs, batch=engine_batch, device=dev, threads=threads,
+                                 on_done=bar.update)
+    elif workers > 1 and actor.parallel:
         # spawn, not fork: a forked child may hang in torch's thread pool
         pieces = split(jobs, 4 * workers)
         with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:

@@ -3,19 +3,25 @@
 A :class:`DrivingPolicy` picks one of the 9 actions each step from the env's world state
 and/or the agent's stacked pixels. :class:`PolicyModule` runs any of them inside a TorchRL
 rollout or collector (it reads the world state through the env it was given).
+:class:`GreedyPolicy` is the trained agent (argmax Q) and :class:`FrameStack` the stacked
+pixels of a plain gym env: one of each, shared by evaluation, stage-1 drives, recording and
+the deploy baseline.
 """
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 
 import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch import nn
 
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
+from memrl.modules.qnet import QNetwork
 
 
 class StopRecording(Exception):  # noqa: N818 - a request, not an error
@@ -32,6 +38,101 @@ class DrivingPolicy(ABC):
     @abstractmethod
     def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
         """Action index in [0, 9) for the current step; ``pixels`` is uint8 ``[4, H, W]``."""
+
+
+class FrameStack:
+    """The last ``n`` frames along the channel axis, padded with the first frame after a reset.
+
+    What TorchRL's ``CatFrames(padding="same")`` and the batched engine's frame ring give, for
+    a plain gym env stepped by hand (``tests/test_evaluate.py`` checks the equality).
+    """
+
+    # Hand-written: mirrors TorchRL's CatFrames (padding="same") on plain numpy arrays.
+    def __init__(self, n: int = 4) -> None:
+        self.n = n
+        self.frames: np.ndarray | None = None
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        """Start a stack from the reset observation ``[C, H, W]``; returns ``[n * C, H, W]``."""
+        self.frames = np.repeat(obs, self.n, axis=0)
+        return self.frames
+
+    def push(self, obs: np.ndarray) -> np.ndarray:
+        """Drop the oldest frame, append ``obs``; returns the stack."""
+        assert self.frames is not None, "FrameStack.push before reset"
+        self.frames = np.concatenate([self.frames[obs.shape[0]:], obs])
+        return self.frames
+
+
+class GreedyPolicy(DrivingPolicy):
+    """argmax Q of a Q-network (the trained agent), for one stack or a whole batch at once.
+
+    The network is a copy (the one given is left as it is) in channels-last memory format:
+    about 2x faster on CPU (oneDNN), the same Q-values (tested against the plain network).
+    On CPU a large batch goes through in chunks: its activations then stay in the caches
+    (one thread: about 0.4 ms per sample in chunks of 8 to 32, 0.8 ms in one batch of 192).
+
+    Args:
+        net: a Q-network taking uint8 ``[B, frames, H, W]``.
+        device: where the copy runs (``to`` moves it later).
+        cpu_chunk: samples per forward pass on CPU (None: the whole batch at once).
+    """
+
+    def __init__(self, net: nn.Module, device: torch.device | str = "cpu",
+                 cpu_chunk: int | None = 16) -> None:
+        self.net = copy.deepcopy(net).eval()
+        self.cpu_chunk = cpu_chunk
+        self.to(device)
+
+    def to(self, device: torch.device | str) -> GreedyPolicy:
+        """Move the network to ``device``; returns self."""
+        self.device = torch.device(device)
+        self.net.to(device=self.device, memory_format=torch.channels_last)  # type: ignore[call-overload]
+        return self
+
+    @torch.inference_mode()
+    def q_values(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Q-values ``[B, actions]`` of uint8 stacks ``[B, frames, H, W]`` (moved to the device)."""
+        x = pixels.to(self.device, non_blocking=True)
+        chunk = self.cpu_chunk if self.device.type == "cpu" and self.cpu_chunk else len(x)
+        if len(x) <= chunk:
+            return self._forward(x.contiguous(memory_format=torch.channels_last))
+        return torch.cat([self._forward(part.contiguous(memory_format=torch.channels_last))
+                          for part in x.split(chunk)])
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The network's forward; a Table I network's 2x2 max-pools as strided maxima (the
+        same values; nn.MaxPool2d on channels-last CPU tensors is about a third of the pass)."""
+        net = self.net
+        if not isinstance(net, QNetwork) or net.conv_dtype is not None or x.device.type != "cpu":
+            return net(x)
+        batch = x.shape[:-3]
+        h = x.reshape(-1, *x.shape[-3:]).to(torch.float32).div_(255.0)  # as QNetwork.forward
+        for layer in net.features:
+            h = max_pool_2x2(h) if _plain_2x2_pool(layer) else layer(h)
+        return net.head(h).reshape(*batch, -1)
+
+    def act_batch(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Greedy actions (int64 ``[B]``, on the device) of a batch of stacks."""
+        return self.q_values(pixels).argmax(-1)
+
+    def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
+        return int(self.act_batch(torch.from_numpy(np.ascontiguousarray(pixels))[None])[0])
+
+
+def _plain_2x2_pool(layer: nn.Module) -> bool:
+    return (isinstance(layer, nn.MaxPool2d) and layer.kernel_size in (2, (2, 2))
+            and layer.stride in (2, (2, 2)) and layer.padding in (0, (0, 0))
+            and layer.dilation in (1, (1, 1)) and not layer.ceil_mode)
+
+
+def max_pool_2x2(x: torch.Tensor) -> torch.Tensor:
+    """``F.max_pool2d(x, 2)`` (odd sizes floored) as the maximum of the four strided views."""
+    # Hand-written: the same maxima as torch's max_pool2d, about 2x faster on channels-last CPU tensors.
+    h, w = x.shape[-2] // 2 * 2, x.shape[-1] // 2 * 2
+    x = x[..., :h, :w]
+    return torch.maximum(torch.maximum(x[..., 0::2, 0::2], x[..., 0::2, 1::2]),
+                         torch.maximum(x[..., 1::2, 0::2], x[..., 1::2, 1::2]))
 
 
 class RandomPolicy(DrivingPolicy):

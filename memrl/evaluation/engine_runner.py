@@ -1,0 +1,131 @@
+"""Evaluation episodes on the batched engine: every episode of the jobs at once, one forward.
+
+For actors that act from pixels alone (``Actor.tensor_policy``: the greedy Q-network). Each
+job (one env config: the protocol's rules for one initial lane) gets its own
+:class:`~memrl.envs.batched.BatchedLaneChange` with up to ``batch`` envs; every step, the
+stacked pixels of the running episodes of *all* jobs go through the actor in one call, each
+engine steps, and an env whose episode ended starts the job's next queued episode (reset with
+its seed: the gym env's scene of that seed). The records are those of the gym-env path of
+:func:`~memrl.evaluation.runner.run_jobs`, episode by episode (``tests/test_engine_runner.py``):
+the engine is the reference env step for step (``tests/test_batched.py``).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Sequence
+
+import torch
+
+from memrl.envs.batched import BatchedLaneChange, resolve_device
+from memrl.envs.config import EnvConfigError, env_config_dict, validate_env_config
+from memrl.envs.vehicles import IDLE
+from memrl.evaluation.jobs import Actor, Job, JobResult, torch_threads
+from memrl.evaluation.protocol import EpisodeRecord
+
+__all__ = ["engine_can_run", "resolve_device", "run_jobs_on_engine", "torch_threads"]
+
+
+def engine_can_run(job: Job) -> bool:
+    """Whether the engine gives this job's gym observations: grayscale frames, one per env
+    step (``frame_stack: 1``; the runners stack them), as the evaluation's env configs have.
+    A config the engine cannot read (highway-env's own keys, a bad value) is left to the gym
+    env and its message."""
+    try:
+        cfg = validate_env_config({**env_config_dict(), **dict(job.env)})
+    except EnvConfigError:
+        return False
+    return bool(cfg.bev.grayscale) and cfg.frame_stack == 1
+
+
+class _Lane:
+    """One job on its own engine of up to ``batch`` envs: which episode each env drives."""
+
+    def __init__(self, job: Job, batch: int | None, device: torch.device, frame_stack: int) -> None:
+        n = min(batch or len(job.episodes), len(job.episodes))
+        self.job, self.queue = job, deque(job.episodes)
+        self.engine = BatchedLaneChange(job.env, n, device, frame_stack)
+        self.index, self.seed = [-1] * n, [0] * n
+        """Episode index (-1: idle, the queue ran out) and reset seed per env."""
+        self.start_lane, self.target_lane, self.vehicles = [-1] * n, [-1] * n, [-1] * n
+        self.ret = torch.zeros(n, dtype=torch.float64, device=device)
+        """Return so far per env, summed step by step in float64 like the gym path."""
+        self.steps = torch.zeros(n, dtype=torch.long, device=device)
+        self.active = torch.zeros(n, dtype=torch.bool, device=device)
+        """Envs driving an episode that counts."""
+        self.fill(range(n))
+
+    def fill(self, ids: Sequence[int]) -> None:
+        """Start the next queued episodes in envs ``ids``; the ones left over go idle."""
+        start = []
+        for i in ids:
+            if self.queue:
+                self.index[i], self.seed[i] = self.queue.popleft()
+                start.append(i)
+            else:
+                self.index[i] = -1
+                self.active[i] = False
+        if not start:
+            return
+        self.engine.reset(start, [self.seed[i] for i in start])
+        info = self.engine.info()
+        lanes, targets = info["lane"].tolist(), info["target_lane"].tolist()
+        cars = (self.engine.present.sum(-1) - 1).tolist()  # other cars in each scene
+        for i in start:
+            self.start_lane[i], self.target_lane[i], self.vehicles[i] = lanes[i], targets[i], cars[i]
+        idx = torch.as_tensor(start, device=self.engine.device)
+        self.ret[idx] = 0.0
+        self.steps[idx] = 0
+        self.active[idx] = True
+
+    def finish(self, ids: list[int], collided: list[bool], reached: list[bool]) -> list[EpisodeRecord]:
+        """The records of the episodes that just ended in envs ``ids``."""
+        rets, steps = self.ret.tolist(), self.steps.tolist()
+        return [EpisodeRecord(
+            initial_lane=self.job.initial_lane, episode=self.index[i], seed=self.seed[i], steps=steps[i],
+            episode_return=rets[i], collided=c, reached_target=r, duration=self.engine.cfg.duration,
+            target_lane=self.target_lane[i], start_lane=self.start_lane[i], vehicles=self.vehicles[i])
+            for i, c, r in zip(ids, collided, reached, strict=True)]
+
+
+def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None = None,
+                       device: torch.device | str = "cpu", frame_stack: int = 4, threads: int = 1,
+                       on_done: Callable[[int], object] | None = None) -> JobResult:
+    """Run the jobs' episodes on batched engines; records in the order they finish.
+
+    Args:
+        actor: a ``tensor_policy`` actor (moved to ``device``).
+        jobs: env configs, initial lanes and (episode index, reset seed) pairs.
+        batch: envs per job at once (None: all of the job's episodes).
+        device: where the engines and the actor run.
+        frame_stack: frames per observation.
+        threads: torch CPU threads for the run.
+        on_done: called with the number of episodes finished at each step that finishes some.
+    """
+    if not actor.tensor_policy:
+        raise TypeError(f"{type(actor).__name__} acts through the env; the engine runs tensor_policy actors")
+    dev = resolve_device(device)
+    actor.to(dev)
+    result = JobResult()
+    with torch_threads(threads):
+        lanes = [_Lane(job, batch, dev, frame_stack) for job in jobs if job.episodes]
+        while live := [lane for lane in lanes if bool(lane.active.any())]:
+            pixels = [lane.engine.observation()[lane.active] for lane in live]
+            actions = actor.act_pixels(torch.cat(pixels) if len(pixels) > 1 else pixels[0]).to(dev)
+            offset = 0
+            for lane, px in zip(live, pixels, strict=True):
+                chosen = torch.full((lane.engine.num_envs,), IDLE, dtype=torch.long, device=dev)
+                chosen[lane.active] = actions[offset:offset + len(px)]
+                offset += len(px)
+                out = lane.engine.step(chosen, active=lane.active)
+                lane.ret += torch.where(lane.active, out.reward, 0.0)
+                lane.steps += lane.active.long()
+                done = (out.terminated | out.truncated) & lane.active
+                ids = torch.nonzero(done).flatten().tolist()
+                if ids:
+                    records = lane.finish(ids, out.collided[ids].tolist(), out.reached_target[ids].tolist())
+                    result.records += records
+                    lane.fill(ids)
+                    if on_done is not None:
+                        on_done(len(records))
+    return result
