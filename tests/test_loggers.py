@@ -78,9 +78,9 @@ def test_episode_update_and_eval_points_share_the_env_step_axis(compose_cfg, tmp
 
 def test_mode_b_logs_stage1_loss_agreement_and_drives_against_its_updates(
         compose_cfg, tmp_path, demos, monkeypatch):
-    import memrl.dqn.loop as loop
+    import memrl.dqn.stage1 as stage1
 
-    monkeypatch.setattr(loop, "drive_check",
+    monkeypatch.setattr(stage1, "drive_check",
                         lambda *a, **k: {"survived": 3, "reached": 2, "both": 1})
     cfg = compose_cfg("train", TINY + ["+mode=B", "logger=csv", "mode.stage1.drive_episodes=4",
                                        "mode.stage1.criterion=max_updates"])

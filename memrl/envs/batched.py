@@ -24,12 +24,11 @@ from gymnasium.utils.seeding import np_random
 
 from memrl.envs import batched_physics as physics
 from memrl.envs.batched_state import engine_state, load_engine_state
-from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
+from memrl.envs.config import BatchedEnvError, LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
 from memrl.envs.scene import max_cars, sample_scene
 from memrl.envs.vehicles import ACTIONS, IDLE, N_ACTIONS
-from memrl.errors import UserError
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
@@ -39,10 +38,6 @@ SCENE_PARTS = ("state", "present", "target_lane", "is_learned", "car_target", "p
 """What a new scene sets, per env (names of the engine's arrays)."""
 INFO_KEYS = ("collided", "on_target_lane", "reached_target")
 """Per-step flags of the agent (the reference env's ``info`` keys of the same names)."""
-
-
-class BatchedEnvError(UserError, ValueError):
-    """A bad argument of the batched engine (N, device, action batch)."""
 
 
 def resolve_device(device: torch.device | str | None) -> torch.device:

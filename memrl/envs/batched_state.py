@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from memrl.envs.config import env_config_dict
+from memrl.envs.config import BatchedEnvError, env_config_dict
 
 if TYPE_CHECKING:
     from memrl.envs.batched import BatchedLaneChange
@@ -84,8 +84,6 @@ def load_engine_state(engine: BatchedLaneChange, state: dict[str, Any]) -> None:
         BatchedEnvError: the saving engine had another config, N, frame stack, car slots or
             pool size (the message lists every difference), or a part of the state is missing.
     """
-    from memrl.envs.batched import BatchedEnvError
-
     if not isinstance(state, dict):
         raise BatchedEnvError(f"engine state must be a dict from state_dict(), got {type(state).__name__}")
     diffs = _mismatch(engine, state)
@@ -107,8 +105,6 @@ def load_engine_state(engine: BatchedLaneChange, state: dict[str, Any]) -> None:
 
 
 def _copy(into: torch.Tensor, value: Any, name: str) -> None:
-    from memrl.envs.batched import BatchedEnvError
-
     if not isinstance(value, torch.Tensor) or value.shape != into.shape or value.dtype != into.dtype:
         got = (f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor)
                else type(value).__name__)

@@ -165,6 +165,10 @@ class LaneChangeConfig:
     whatever this says (``gymnasium.make_vec`` takes ``num_envs`` itself)."""
 
 
+class BatchedEnvError(UserError, ValueError):
+    """A bad argument of the batched engine (N, device, action batch)."""
+
+
 class EnvConfigError(UserError, ValueError):
     """A lane-change env config value is missing, unknown or out of range."""
 
