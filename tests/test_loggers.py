@@ -144,17 +144,17 @@ def test_a_resumed_run_logs_each_point_once_as_the_uninterrupted_run(
     extra = ["total_episodes=6", "checkpoint_every=2", f"logger={backend}"] + (
         [f"+mode={mode}"] if mode else [])
     train(compose_cfg("train", TINY + extra), tmp_path / "full", demos=demos)
-    original = Trainer.run_episode
+    original = Trainer._episodes_done
 
-    def dying(self):  # killed during episode 6: episode 5 (after the checkpoint at 4) is redone
+    def dying(self, ends):  # killed after episode 5: it (after the checkpoint at 4) is redone
+        original(self, ends)
         if self.counters.episodes == 5:
             raise Killed("simulated kill")
-        original(self)
 
-    monkeypatch.setattr(Trainer, "run_episode", dying)
+    monkeypatch.setattr(Trainer, "_episodes_done", dying)
     with pytest.raises(Killed):
         train(compose_cfg("train", TINY + extra), tmp_path / "cut", demos=demos)
-    monkeypatch.setattr(Trainer, "run_episode", original)
+    monkeypatch.setattr(Trainer, "_episodes_done", original)
     before = points(tmp_path / "cut", backend)
     assert [s for s, _ in before["episode/return"]] == [
         int(r["env_steps"]) for r in rows(tmp_path / "cut" / "episodes.csv")[:4]]

@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDictBase
 
 from memrl.dqn.config import Stage1Config
+from memrl.evaluation.jobs import module_device
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.runner import Job, run_jobs
@@ -90,7 +91,7 @@ def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int], batch: i
     protocol = ProtocolConfig(episodes=len(seeds), initial_lanes=["non_goal"],
                               duration=int(env_cfg.get("duration", 300)))  # the run's length
     job = Job(protocol_env(env_cfg, protocol, "non_goal"), "non_goal", list(enumerate(seeds)))
-    device = device if device is not None else next(qnet.parameters()).device
+    device = device if device is not None else module_device(qnet)
     records = run_jobs(GreedyActor(qnet), [job], batch=batch, device=device).records  # type: ignore[arg-type]
     return {"survived": sum(r.survived for r in records), "reached": sum(r.goal for r in records),
             "both": sum(r.survived and r.goal for r in records)}

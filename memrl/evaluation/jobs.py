@@ -82,3 +82,8 @@ def torch_threads(n: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def module_device(module: torch.nn.Module) -> torch.device:
+    """Where a network's parameters live (the CPU for one without parameters)."""
+    return next((p.device for p in module.parameters()), torch.device("cpu"))

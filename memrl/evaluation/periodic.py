@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from memrl.csv_table import CsvTable
+from memrl.evaluation.jobs import module_device
 from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import INITIAL_LANES, ProtocolConfig, protocol_env, scenario_seeds, score
@@ -58,7 +59,7 @@ def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, epis
     seeds = list(enumerate(scenario_seeds(seed, episodes, domain="periodic")))
     jobs = [Job(protocol_env(env, protocol, lane), lane, seeds) for lane in initial_lanes]  # type: ignore[arg-type]
     start = time.perf_counter()
-    device = device if device is not None else next(qnet.parameters()).device
+    device = device if device is not None else module_device(qnet)
     records = run_jobs(GreedyActor(qnet), jobs, workers=1, batch=batch,  # type: ignore[arg-type]
                        device=device).records
     out: dict[str, float] = {}
