@@ -27,3 +27,11 @@ def compose_cfg() -> Callable[..., DictConfig]:
             return compose(config_name=name, overrides=overrides or [], return_hydra_config=False)
 
     return _compose
+
+
+@pytest.fixture(scope="module")
+def demos():
+    """120 demo transitions recorded through the real TorchRL pipeline (one set per module)."""
+    from tests.helpers import make_demos
+
+    return make_demos(120)

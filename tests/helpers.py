@@ -62,3 +62,11 @@ def save_pool(root: Path, seeds: tuple[int, ...] = (1, 2), head_scale: float = 1
             net.head[-1].weight.mul_(head_scale)
         paths.append(str(save_qnet(root / f"agent{seed}" / "final.pt", net, {})))
     return paths
+
+
+def csv_rows(path: Path) -> list[dict[str, str]]:
+    """The rows of a CSV file with a header."""
+    import csv
+
+    with path.open() as f:
+        return list(csv.DictReader(f))

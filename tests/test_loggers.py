@@ -13,20 +13,13 @@ import pytest
 from memrl.dqn.loop import Trainer
 from memrl.loggers import LoggerBackendMissing, check_backend, flat_hparams, run_name
 from memrl.train import train
-from tests.helpers import TINY, make_demos
+from tests.helpers import TINY, csv_rows
 
 TIMING = ("train/updates_per_s", "train/frames_per_s", "stage1/updates_per_s", "stage1/frames_per_s")
 """Points whose values depend on the machine's speed (their steps must still match)."""
 
 
-@pytest.fixture(scope="module")
-def demos():
-    return make_demos(120)
-
-
-def rows(path: Path) -> list[dict[str, str]]:
-    with path.open() as f:
-        return list(csv.DictReader(f))
+rows = csv_rows
 
 
 def tb_events(log_dir: Path) -> list:

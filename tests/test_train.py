@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 
 import pytest
@@ -12,17 +11,9 @@ from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.config import TrainConfigError
 from memrl.dqn.loop import Trainer
 from memrl.train import train
-from tests.helpers import TINY, make_demos
+from tests.helpers import TINY, csv_rows
 
-
-@pytest.fixture(scope="module")
-def demos():
-    return make_demos(120)
-
-
-def rows(path):
-    with path.open() as f:
-        return list(csv.DictReader(f))
+rows = csv_rows
 
 
 @pytest.mark.parametrize("mode", [None, "A", "B"])

@@ -3,8 +3,6 @@ depend on N, exact resume mid-episode, devices."""
 
 from __future__ import annotations
 
-import csv
-
 import pytest
 import torch
 
@@ -14,19 +12,12 @@ from memrl.dqn.loop import Trainer
 from memrl.dqn.schedule import UpdateSchedule
 from memrl.errors import ConfigError
 from memrl.train import train
-from tests.helpers import TINY, make_demos
+from tests.helpers import TINY, csv_rows
 
 N4 = ["env.num_envs=4"]
 
 
-@pytest.fixture(scope="module")
-def demos():
-    return make_demos(120)
-
-
-def rows(path):
-    with path.open() as f:
-        return list(csv.DictReader(f))
+rows = csv_rows
 
 
 @pytest.mark.parametrize("mode", [None, "A", "B"])
