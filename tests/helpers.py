@@ -70,3 +70,22 @@ def csv_rows(path: Path) -> list[dict[str, str]]:
 
     with path.open() as f:
         return list(csv.DictReader(f))
+
+
+def assert_same_final_weights_and_agent_buffers(cfg, demos, run_a: Path, run_b: Path) -> None:
+    """Two finished runs of ``cfg`` end with equal weights and equal agent buffers (checked by
+    resuming each into a fresh trainer)."""
+    from memrl.dqn.loop import Trainer
+
+    a = torch.load(run_a / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    b = torch.load(run_b / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    buffers = []
+    for i, run in enumerate((run_a, run_b)):
+        trainer = Trainer(cfg, run.parent / f"probe_{i}", demos)
+        trainer.resume(run)
+        buffer = trainer.stage.buffer
+        buffers.append(getattr(buffer, "online_buffer", buffer))  # mode A: the agent's part
+    assert len(buffers[0]) == len(buffers[1]) > 0
+    idx = torch.arange(len(buffers[0]))
+    assert (buffers[0].storage.get(idx) == buffers[1].storage.get(idx)).all()

@@ -12,7 +12,7 @@ from memrl.dqn.loop import Trainer
 from memrl.dqn.schedule import UpdateSchedule
 from memrl.errors import ConfigError
 from memrl.train import train
-from tests.helpers import TINY, csv_rows
+from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
 
 N4 = ["env.num_envs=4"]
 
@@ -100,17 +100,7 @@ def test_killed_and_resumed_run_on_four_envs_equals_an_uninterrupted_one(
         {**r, "updates_per_s": r2["updates_per_s"], "frames_per_s": r2["frames_per_s"]}
         for r, r2 in zip(rows(tmp_path / "full" / "updates.csv"),
                          rows(tmp_path / "cut" / "updates.csv"), strict=True)]
-    a = torch.load(tmp_path / "full" / "checkpoints" / "final.pt", weights_only=False)["qnet"]
-    b = torch.load(tmp_path / "cut" / "checkpoints" / "final.pt", weights_only=False)["qnet"]
-    assert all(torch.equal(a[k], b[k]) for k in a)
-    ta, tb = Trainer(cfg, tmp_path / "x", demos), Trainer(cfg, tmp_path / "y", demos)
-    ta.resume(tmp_path / "full")
-    tb.resume(tmp_path / "cut")
-    agent_a = ta.stage.buffer.online_buffer if mode == "A" else ta.stage.buffer
-    agent_b = tb.stage.buffer.online_buffer if mode == "A" else tb.stage.buffer
-    assert len(agent_a) == len(agent_b) > 0
-    idx = torch.arange(len(agent_a))
-    assert (agent_a.storage.get(idx) == agent_b.storage.get(idx)).all()
+    assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
 
 
 def test_a_run_on_cpu_loads_for_evaluation(compose_cfg, tmp_path):
