@@ -56,6 +56,7 @@ ROWS = [
     ("train", ["seed=abc"], "seed"),
     ("train", ["device=gpu"], "device"),
     ("train", ["env.num_envs=0"], "num_envs"),
+    ("train", ["env.num_envs=500", "buffer.capacity=400"], "env.num_envs"),
     ("train", ["mode.stage2.demo_fraction=1.5"], "mode.stage2.demo_fraction"),
     ("train", ["total_frames=-5"], "total_frames"),
     ("train", ["total_frames=0"], "total_frames"),

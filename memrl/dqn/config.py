@@ -218,3 +218,9 @@ def check_train_config(cfg: DictConfig) -> None:
           f"must be in [0, 1), got {s2.demo_fraction}")
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")
+    share = {"A": m.demo_fraction, "B": m.stage2.get("demo_fraction", 0.0)}.get(m.name, 0.0)
+    agent_part = int(cfg.buffer.capacity) - int(round(float(share) * int(cfg.buffer.capacity)))
+    n_envs = int(cfg.env.get("num_envs", 1))
+    _need(agent_part >= n_envs, "env.num_envs",
+          f"{n_envs} envs write {n_envs} transitions per step, more than the {agent_part} the "
+          "replay keeps for the agent's data; raise buffer.capacity")
