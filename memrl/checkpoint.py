@@ -11,7 +11,7 @@ import torch
 from memrl.dqn.checkpoint import CheckpointError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
-from memrl.modules.policy import DrivingPolicy
+from memrl.modules.policy import DrivingPolicy, GreedyPolicy
 from memrl.modules.qnet import QNetwork
 
 
@@ -93,6 +93,7 @@ class GreedyQPolicy(DrivingPolicy):
 
     def __init__(self, net: QNetwork, epsilon: float = 0.0, seed: int = 0) -> None:
         self.net, self.epsilon = net, float(epsilon)
+        self.greedy = GreedyPolicy(net)  # the one greedy forward of evaluation and training drives
         self.rng = np.random.default_rng(seed)
 
     @torch.no_grad()
@@ -105,7 +106,7 @@ class GreedyQPolicy(DrivingPolicy):
                              f"{frames}}}")
         if self.epsilon > 0 and self.rng.random() < self.epsilon:
             return int(self.rng.integers(N_ACTIONS))
-        return int(self.net(torch.as_tensor(obs)).argmax(-1))
+        return int(self.greedy.act_batch(torch.from_numpy(np.ascontiguousarray(obs))[None])[0])
 
 
 def load_policy(path: str, epsilon: float = 0.0) -> DrivingPolicy:
