@@ -327,3 +327,12 @@ def test_drive_check_counts_the_behaviour_in_its_own_scenes(compose_cfg):
     assert counts["reached"] == counts["both"] == 0 and 0 <= counts["survived"] <= 6
     assert counts == drive_check(KeepLane(), cfg.env, 6, seed=0)
     assert not set(scenario_seeds(0, 20, "stage1")) & set(scenario_seeds(0, 100, "test"))
+
+
+def test_stage2_keeps_prior_knowledge_at_its_stratified_share(compose_cfg, tmp_path, demos):
+    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage2.demo_fraction=0.25"])
+    summary = train(cfg, tmp_path, demos=demos)
+    assert summary.stage == "B2"
+    stage2 = [r for r in rows(tmp_path / "updates.csv") if r["stage"] == "B2"]
+    # exactly round(0.25 x 8) = 2 demos in every stage-2 batch; the paper's B (0) has none
+    assert stage2 and {(r["demo_count_min"], r["demo_count_max"]) for r in stage2} == {("2", "2")}

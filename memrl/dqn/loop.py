@@ -315,7 +315,8 @@ class Trainer:
             "rng": ckpt.rng_state(),
             "stage1_best": self.stage1_checks.best if self.stage1_checks is not None else None,
         }
-        agent_data = online and len(self.stage.buffer) > 0
+        agent_part = getattr(self.stage.buffer, "online_buffer", self.stage.buffer)  # not the demos
+        agent_data = online and len(agent_part) > 0
         ckpt.save(self.out_dir / "checkpoints" / "last", state,
                   self.stage.buffer if agent_data else None)
         self._checkpointed_at = self.counters.episodes
