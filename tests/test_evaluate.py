@@ -16,7 +16,7 @@ from hydra.utils import instantiate
 
 from memrl.checkpoint import GreedyQPolicy, load_qnet
 from memrl.data.recording import record_episodes
-from memrl.dqn.loop import episode_seed
+from memrl.dqn.collector import episode_seed
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import N_ACTIONS, action_index

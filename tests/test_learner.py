@@ -106,7 +106,7 @@ def test_exploration_ignores_the_process_wide_deterministic_mode():
     acting thread of overlap mode must keep exploring meanwhile."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from memrl.dqn.learner import make_exploration
+    from memrl.dqn.exploration import make_exploration
 
     explore = make_exploration(1.0, 1.0, 10)  # always random
     torch.manual_seed(0)

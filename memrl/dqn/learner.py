@@ -11,7 +11,6 @@ from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate
 
 from memrl.dqn.config import AgentConfig
-from memrl.dqn.exploration import AlwaysExploring, make_exploration  # noqa: F401 (re-export)
 from memrl.modules.qnet import QNetwork, make_q_actor
 
 

@@ -31,7 +31,7 @@ from tqdm import tqdm
 from memrl.checkpoint import save_qnet
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.builder import FIRST_STAGE, NEXT_STAGE, Stage, build_stage
-from memrl.dqn.collector import Collector, EpisodeEnd, Steps, episode_seed
+from memrl.dqn.collector import Collector, EpisodeEnd, Steps
 from memrl.dqn.learner import Learner
 from memrl.dqn.overlap import RoundRunner
 from memrl.dqn.records import RunRecords
@@ -41,8 +41,6 @@ from memrl.dqn.stage1 import Stage1Checks, Stage1Progress
 from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
-
-__all__ = ["Counters", "Summary", "Trainer", "episode_seed"]
 
 log = logging.getLogger(__name__)
 
@@ -358,10 +356,6 @@ class Trainer:
         log.info("resumed %s at stage %s: %d episodes, %d frames, %d updates", where,
                  self.counters.stage, self.counters.episodes, self.counters.frames,
                  self.counters.updates)
-
-    def close(self) -> None:
-        """Stop the learner thread (overlap mode); the trainer can go on and restart it."""
-        self.rounds.close()
 
     # ------------------------------------------------------------------ the end
     def _summary(self) -> Summary:

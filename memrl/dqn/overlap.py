@@ -91,6 +91,7 @@ class RoundRunner:
 
     def sync(self) -> None:
         """Refresh the acting copy from the online network (overlap mode)."""
+        self.stale = False
         if self.acting_net is self.learner.actor:
             return
         with torch.no_grad():

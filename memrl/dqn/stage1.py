@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,6 +15,8 @@ from memrl.evaluation.jobs import module_device
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.runner import Job, run_jobs
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -152,9 +156,6 @@ class Stage1Checks:
     def check(self, qnet: torch.nn.Module, loss_module: torch.nn.Module,
               recent_losses: list[float]) -> dict[str, float]:
         """Measure now, decide whether to stop (``progress.stop_reason``); the logger values."""
-        import logging
-        import time
-
         p, cfg = self.progress, self.cfg
         p.losses.append(float(sum(recent_losses) / max(len(recent_losses), 1)))
         p.agreements.append(agreement(qnet, self.held_out))
@@ -170,7 +171,7 @@ class Stage1Checks:
                 p.best_updates = p.updates
                 self.best = {k: v.detach().clone() for k, v in loss_module.state_dict().items()}
         p.stop_reason = stop_reason(cfg, p)
-        logging.getLogger(__name__).info(
+        log.info(
             "stage 1: %d updates, loss %.4f, agreement %.3f (%s)%s%s", p.updates, p.losses[-1],
             p.agreements[-1], ", ".join(f"{k} {v:.3f}" for k, v in p.parts[-1].items()),
             f", drive {p.drives[-1]}" if drove else "",
