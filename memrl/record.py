@@ -58,8 +58,9 @@ def record(cfg: DictConfig) -> RecordSummary:
     started = datetime.now(UTC).replace(microsecond=0)
     stopped = False
     if cfg.example:
-        path: Path | None = ensure_example_demos(cfg.env, cfg.paths.data_dir, episodes=int(cfg.episodes),
-                                                 seed=int(cfg.seed), overwrite=bool(cfg.overwrite))
+        path: Path | None = ensure_example_demos(cfg.env, cfg.paths.data_dir, cfg.recipe,
+                                                 overwrite=bool(cfg.overwrite),
+                                                 progress=bool(cfg.progress))
         meta = read_metadata(path)  # type: ignore[arg-type]
         stats = meta["stats"]
         made = datetime.fromisoformat(meta["created"])

@@ -19,6 +19,7 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from memrl.data.recipe import DemoRecipe
 from memrl.errors import UserError, config_error
 from memrl.fields import SEED_MAX, _element_ok, _valid, check_fields, spec  # noqa: F401
 
@@ -135,6 +136,30 @@ def check_train(cfg: DictConfig) -> None:
     if cfg.mode.name in ("A", "B") and demos is not None and not Path(str(demos)).is_dir():
         raise config_error("mode.demos_path", f"no dataset folder {demos} (a folder made by "
                            "python -m memrl.record, or null for the scripted example)")
+    if cfg.mode.name in ("A", "B") and demos is None:
+        check_recipe(cfg.mode.get("example"), cfg.env, "mode.example")
+
+
+def check_recipe(recipe: Any, env: Any, key: str) -> None:
+    """A demo recipe's values, and the env its episodes are recorded in."""
+    import inspect
+
+    from memrl.data.recipe import recipe_error, recipe_values
+    from memrl.envs.config import EnvConfigError
+    from memrl.modules.scripted import ScriptedDriver
+
+    if (bad := recipe_error(recipe)) is not None:
+        raise config_error(f"{key}.{bad[0]}", bad[1])
+    known = set(inspect.signature(ScriptedDriver).parameters)
+    for name in recipe_values(recipe)["driver"]:
+        if name not in known:
+            raise config_error(f"{key}.driver.{name}", "not a ScriptedDriver option "
+                               f"(conf/demos/scripted.yaml lists them: {', '.join(sorted(known))})")
+    env_values = OmegaConf.to_container(env, resolve=True) if isinstance(env, DictConfig) else dict(env)
+    try:
+        check_env({**env_values, **recipe_values(recipe)["env"]})  # type: ignore[dict-item]
+    except EnvConfigError as e:
+        raise config_error(f"{key}.env", str(e)) from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -160,6 +185,9 @@ class RecordSchema:
     """Dataset folder."""
     overwrite: bool = MISSING
     example: bool = MISSING
+    recipe: DemoRecipe = field(default_factory=DemoRecipe)
+    """``example=true``: how the example is recorded (training's ``mode.example``, whose
+    defaults these are; e.g. recipe.episodes=12 for the smoke preset's)."""
     progress: bool = MISSING
     debug: bool = MISSING
     env: Any = MISSING
@@ -171,9 +199,11 @@ def check_record(cfg: DictConfig) -> None:
     check_fields(RecordSchema, cfg)
     check_env(cfg.env)
     if cfg.example:
-        if cfg.tail_steps is not None or cfg.action_noise:
-            raise config_error("example", "the example dataset holds whole noiseless episodes; "
-                               "drop tail_steps and action_noise, or record without example=true")
+        for key, default in (("episodes", 10), ("seed", 0), ("tail_steps", None), ("action_noise", 0.0)):
+            if cfg[key] != default:
+                raise config_error("example", f"example=true records `recipe` (training's "
+                                   f"mode.example); set recipe.{key}, not {key}")
+        check_recipe(cfg.recipe, cfg.env, "recipe")
         if cfg.demos.source != "scripted":
             raise config_error("example", "the example dataset is made by the scripted driver "
                                f"(demos=scripted), not demos={cfg.demos.source}")

@@ -23,16 +23,18 @@ log = logging.getLogger(__name__)
 
 def prior_knowledge(cfg: DictConfig) -> TensorDictBase:
     """The demo transitions of ``mode.demos_path`` (checked against the env config), or the
-    cached scripted-driver example dataset when it is null."""
+    scripted driver's dataset of ``mode.example`` (recorded once, then cached) when it is null."""
     from memrl.data import demos
 
     path = cfg.mode.demos_path
     if path is None:
-        if not demos.example_demos_path(cfg.env, Path(cfg.paths.data_dir)).exists():
+        recipe = cfg.mode.example
+        if not demos.example_demos_path(cfg.env, Path(cfg.paths.data_dir), recipe).exists():
             check_writable(cfg.paths.data_dir, "paths.data_dir")  # before recording it
         from memrl.data.recording import ensure_example_demos
 
-        path = ensure_example_demos(cfg.env, Path(cfg.paths.data_dir))
+        path = ensure_example_demos(cfg.env, Path(cfg.paths.data_dir), recipe,
+                                    progress=bool(cfg.progress))
     return demos.load_demos(Path(path), env_cfg=cfg.env)
 
 

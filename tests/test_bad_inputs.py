@@ -83,6 +83,8 @@ ROWS = [
     ("train", ["opponent=learned"], "opponent.pool"),
     ("train", ["+mode=B", "mode.demos_path=/nonexistent/demos"], "mode.demos_path"),
     ("train", ["+mode=A", "mode.demo_fraction=1.5"], "mode.demo_fraction"),
+    ("train", ["+mode=B", "mode.example.action_noise=1"], "mode.example.action_noise"),
+    ("train", ["+mode=A", "mode.example.episodes=0"], "mode.example.episodes"),
     # record
     ("record", ["episodes=0"], "episodes"),
     ("record", ["seed=-3"], "seed"),
@@ -91,6 +93,7 @@ ROWS = [
     ("record", ["action_noise=1.5"], "action_noise"),
     ("record", ["overwrite=perhaps"], "overwrite"),
     ("record", ["example=true", "tail_steps=5"], "example"),
+    ("record", ["example=true", "recipe.tail_steps=-2"], "recipe.tail_steps"),
     ("record", ["progress=maybe"], "progress"),
     ("record", ["debug=maybe"], "debug"),
     ("record", ["env.lanes_count=1"], "lanes_count"),

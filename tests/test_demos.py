@@ -35,6 +35,7 @@ from memrl.envs.vehicles import action_index
 from memrl.modules.policy import DrivingPolicy, PerturbedPolicy, PolicyModule
 from memrl.modules.scripted import ScriptedDriver
 from memrl.record import record
+from memrl.train import prior_knowledge, train
 
 SHORT = {"duration": 40, "vehicles_count": [0, 5]}  # short episodes keep the files small
 BYTES_PER_TRANSITION = 5 * 8 + 8 + 1 + 4 + 3  # frame refs, action, is_demo, reward, 3 flags
@@ -247,10 +248,16 @@ def test_demos_fill_a_torchrl_storage_once(dataset, tmp_path, kind):
         demos_into_storage(td, LazyTensorStorage(50))
 
 
+ONE_EPISODE = {"episodes": 1, "tail_steps": None, "action_noise": 0.0, "driver": {},
+               "env": {"vehicles_count": 0, "initial_lane": "non_goal"}}
+"""A recipe of one whole, noiseless episode on an empty road."""
+
+
 def test_example_dataset_is_recorded_once_then_reused(tmp_path, monkeypatch):
-    env = {"vehicles_count": 0, "duration": 60, "initial_lane": "non_goal"}
-    path = ensure_example_demos(env, tmp_path, episodes=1)
-    assert path == example_demos_path(env, tmp_path) and path.parent == tmp_path
+    env = {"duration": 60}
+    path = ensure_example_demos(env, tmp_path, ONE_EPISODE)
+    assert path == example_demos_path(env, tmp_path, ONE_EPISODE) and path.parent == tmp_path
+    assert path != example_demos_path(env, tmp_path, {**ONE_EPISODE, "seed": 1})  # one per recipe
     assert load_demos(path, env).shape == (60,)
     assert read_metadata(path)["stats"]["kept"]["goal"] == 1
 
@@ -259,11 +266,46 @@ def test_example_dataset_is_recorded_once_then_reused(tmp_path, monkeypatch):
 
     import memrl.data.recording as recording
     monkeypatch.setattr(recording, "record_to_dataset", no_recording)
-    assert ensure_example_demos(env, tmp_path, episodes=1) == path
+    assert ensure_example_demos(env, tmp_path, ONE_EPISODE) == path
     monkeypatch.undo()
     (path / "metadata.json").unlink()  # damaged cache: recorded again
-    assert ensure_example_demos(env, tmp_path, episodes=1) == path
+    assert ensure_example_demos(env, tmp_path, ONE_EPISODE) == path
     assert load_demos(path, env).shape == (60,)
+
+
+def test_default_recipe_shows_lane_changes_from_non_goal_starts_with_recoveries(tmp_path):
+    """The prior knowledge modes A and B use by default (4 of its 240 episodes here): every
+    kept episode starts outside the target lane, changes lanes (steering actions, target
+    reached), is cut 30 steps after reaching it, and was recorded with 20% random actions, of
+    which only the driver's recoveries are stored (as
+    ``test_record_action_noise_stores_only_the_drivers_own_steps`` checks)."""
+    from dataclasses import asdict
+
+    from memrl.data.recipe import DemoRecipe
+    from memrl.envs.lane_change import LaneChangeEnv
+    from memrl.envs.vehicles import ACTIONS
+
+    recipe = {"episodes": 4}
+    path = ensure_example_demos(None, tmp_path, recipe)
+    meta = read_metadata(path)
+    assert meta["recipe"] == {**asdict(DemoRecipe()), "episodes": 4}
+    assert meta["action_noise"] == 0.2 and meta["tail_steps"] == 30
+    assert meta["policy"]["merge_window"] == 12.0 and meta["policy"]["speed_tolerance"] == 0.3
+    kept = meta["episodes"]
+    assert len(kept) >= 3 and all(e["reached_target"] and not e["collided"] for e in kept)
+    for e in kept:  # the recording env's own reset: started outside the target lane
+        _, info = LaneChangeEnv(config=DemoRecipe().env).reset(seed=e["seed"])
+        assert not info["on_target_lane"], e["seed"]
+    assert all(e["perturbed"] > 0 for e in kept)  # random actions were taken in every episode
+    demos = load_demos(path)
+    steering = sum(ACTIONS[int(a)][1] != 0 for a in demos["action"])
+    assert steering >= 2 * len(kept)  # at least into and out of the change, per episode
+    # Rewards > 0 only once the car's centre is in the target lane (Table II: +1 there, -2 in
+    # the other lane, +1 at the centre). Whole episodes would hold ~250 such steps each; cut 30
+    # steps after the car is wholly in it (a few steps after its centre), far fewer.
+    on_target = int((demos["next", "reward"] > 0).sum())
+    assert len(kept) <= on_target < 50 * len(kept)
+    assert int(demos["next", "terminated"].sum()) == 0  # cut ends bootstrap; none crashed
 
 
 def test_record_command_prints_and_saves(compose_cfg, tmp_path, capsys):
@@ -346,18 +388,33 @@ def test_record_action_noise_stores_only_the_drivers_own_steps(compose_cfg, tmp_
 
 
 def test_record_example_and_bad_options(compose_cfg, tmp_path):
-    base = ["episodes=1", "env.duration=60", "env.vehicles_count=0", "env.initial_lane=non_goal",
-            f"paths.data_dir={tmp_path}", "progress=false"]
-    summary = record(compose_cfg("record", [*base, "example=true"]))
-    assert summary.path == example_demos_path(compose_cfg("record", base).env, tmp_path)
-    assert summary.kept["goal"] == 1
+    base = ["env.duration=60", f"paths.data_dir={tmp_path}", "progress=false"]
+    one = ["recipe.episodes=1", "recipe.tail_steps=null", "recipe.action_noise=0",
+           "recipe.env.vehicles_count=0"]
+    summary = record(compose_cfg("record", [*base, "example=true", *one]))
+    recipe = compose_cfg("record", [*base, *one]).recipe
+    assert summary.path == example_demos_path(compose_cfg("record", base).env, tmp_path, recipe)
+    assert summary.kept["goal"] == 1 and summary.recorded["episodes"] == 1
+    # what `python -m memrl.train +mode=B` would use with the same recipe: the same folder
+    train_cfg = compose_cfg("train", ["+mode=B", "env.duration=60", f"paths.data_dir={tmp_path}",
+                                      *(f"mode.example.{o.removeprefix('recipe.')}" for o in one)])
+    assert len(prior_knowledge(train_cfg)) == len(load_demos(summary.path))
     with pytest.raises(ValueError, match="keep"):
         record(compose_cfg("record", [*base, "keep=some"]))
     with pytest.raises(ValueError, match="example"):
         record(compose_cfg("record", [*base, "example=true", "demos=human"]))
-    for option in ("tail_steps=5", "action_noise=0.1"):
-        with pytest.raises(ValueError, match="example.*noiseless"):
+    for option, key in (("tail_steps=5", "tail_steps"), ("action_noise=0.1", "action_noise"),
+                        ("episodes=3", "episodes")):
+        with pytest.raises(ValueError, match=f"example.*set recipe.{key}, not {key}"):
             record(compose_cfg("record", [*base, "example=true", option]))
+    with pytest.raises(ValueError, match=r"'recipe.env': .*'duration' would change"):
+        record(compose_cfg("record", [*base, "example=true", "+recipe.env.duration=30"]))
+    with pytest.raises(ValueError, match=r"'recipe.driver.merge_windows': not a ScriptedDriver"):
+        record(compose_cfg("record", [*base, "example=true", "+recipe.driver.merge_windows=3"]))
+    with pytest.raises(ValueError, match=r"'mode.example.env': env config 'initial_lane'"):
+        train(compose_cfg("train", ["+mode=A", "mode.example.env.initial_lane=left",
+                                    f"paths.data_dir={tmp_path}"]), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
 
 
 def test_dataset_recorded_before_a_later_key_still_loads(copy):

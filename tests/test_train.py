@@ -147,6 +147,29 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
     assert resumed.resumed_from_episode == 1 and resumed.episodes == 2
 
 
+def test_checkpoint_from_before_the_demo_recipe_asks_for_the_old_example(compose_cfg, tmp_path,
+                                                                          demos):
+    """A checkpoint without ``mode.example`` used the old example (10 whole noiseless episodes):
+    a mode A run that recorded its demos is refused naming the recipe's keys; a Default run,
+    which records none, resumes as it is."""
+    for mode, run in (("A", tmp_path / "a"), ("default", tmp_path / "d")):
+        extra = ["+mode=A"] if mode == "A" else []
+        train(compose_cfg("train", TINY + ["total_episodes=1", *extra]), run, demos=demos)
+        state_file = run / "checkpoints" / "last" / "state.pt"
+        state = torch.load(state_file, weights_only=False)
+        del state["config"]["mode"]["example"]
+        torch.save(state, state_file)
+        (state_file.parent / ckpt.MANIFEST).unlink()
+        again = compose_cfg("train", TINY + ["total_episodes=2", f"resume={run}", *extra])
+        if mode == "A":
+            with pytest.raises(ckpt.CheckpointError, match="mode.example") as err:
+                train(again, demos=demos)
+            assert "mode.example.episodes: 10 (checkpoint) vs 12 (now)" in str(err.value)
+            assert "mode.example.action_noise: 0.0 (checkpoint) vs 0.2 (now)" in str(err.value)
+        else:
+            assert train(again).resumed_from_episode == 1
+
+
 def test_resume_needs_a_complete_checkpoint(compose_cfg, tmp_path):
     (tmp_path / "checkpoints" / "last").mkdir(parents=True)
     cfg = compose_cfg("train", TINY + [f"resume={tmp_path}"])

@@ -51,18 +51,11 @@ class _DriveCurve:
 
 
 def record_variant_demos(env_cfg: dict[str, Any], recipe: dict[str, Any], folder: Path) -> Path:
-    """Record a variant's own scripted demos: ``recipe`` holds ``episodes`` (default 100),
-    ``seed`` (0), ``tail_steps`` (null), ``action_noise`` (0), ``driver`` (ScriptedDriver
-    keyword arguments) and ``env`` (env values changed for recording only, e.g.
-    ``initial_lane: non_goal``)."""
-    from memrl.data.recording import record_to_dataset
-    from memrl.modules.scripted import ScriptedDriver
+    """Record a variant's own scripted demos: ``recipe`` holds the keys of
+    :class:`memrl.data.recipe.DemoRecipe` that differ from the default recipe."""
+    from memrl.data.recording import record_recipe
 
-    path, rec = record_to_dataset(
-        {**env_cfg, **dict(recipe.get("env") or {})}, ScriptedDriver(**dict(recipe.get("driver") or {})),
-        folder, episodes=int(recipe.get("episodes", 100)), seed=int(recipe.get("seed", 0)),
-        keep_stable=True, tail_steps=recipe.get("tail_steps"),
-        action_noise=float(recipe.get("action_noise", 0.0)), source="scripted")
+    path, rec = record_recipe(env_cfg, recipe, folder)
     if path is None:
         raise RuntimeError(f"the scripted driver kept no episode: {rec.stats()['recorded']}")
     return path
@@ -103,7 +96,7 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
         with TemporaryDirectory() as tmp:
             recipe = variant.get("demos")
             source = record_variant_demos(env_cfg, dict(recipe), Path(tmp) / "demos") \
-                if recipe else ensure_example_demos(env_cfg, data)
+                if recipe else ensure_example_demos(env_cfg, data, cfg.mode.example)
             demos = load_demos(source, env_cfg=env_cfg).to_tensordict()
             trainer = Trainer(cfg, Path(tmp) / "run", demos)
             trainer._t_start, trainer._frames0, trainer._updates0 = time.perf_counter(), 0, 0

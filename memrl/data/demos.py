@@ -50,6 +50,7 @@ from memrl.data.demo_checks import (
 )
 from memrl.data.frame_plan import Pixels, not_shifted_message, plan_write
 from memrl.data.frame_store import REFS_KEY
+from memrl.data.recipe import recipe_hash
 from memrl.envs.config import LaneChangeConfig, validate_env_config
 from memrl.envs.torchrl_env import env_kwargs
 
@@ -456,7 +457,9 @@ def default_data_dir() -> Path:
     return Path(os.environ.get("MEMRL_ROOT", ".")) / "outputs" / "data"
 
 
-def example_demos_path(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None) -> Path:
-    """Where the cached scripted-driver example for this env config lives."""
+def example_demos_path(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None,
+                       recipe: Any = None) -> Path:
+    """Where the cached scripted-driver example of this env config and recipe lives
+    (``recipe``: a :class:`memrl.data.recipe.DemoRecipe` or its values; None: the default)."""
     folder = Path(data_dir) if data_dir is not None else default_data_dir()
-    return folder / f"example_scripted_{env_config_hash(env_cfg)[:12]}"
+    return folder / f"example_scripted_{env_config_hash(env_cfg)[:12]}_{recipe_hash(recipe)[:8]}"

@@ -18,6 +18,7 @@ from tensordict import TensorDict
 from tqdm import tqdm
 
 from memrl.data.demos import DemoDatasetError, EnvCfg, example_demos_path, load_demos, save_demos
+from memrl.data.recipe import recipe_error, recipe_values
 from memrl.data.transitions import to_transitions
 from memrl.envs.config import LaneChangeConfig
 from memrl.envs.lane_change import LaneChangeEnv
@@ -227,29 +228,46 @@ def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.Pat
     return save_demos(rec.transitions, path, metadata, overwrite=overwrite), rec
 
 
-def ensure_example_demos(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None, *,
-                         episodes: int = 10, seed: int = 0, overwrite: bool = False) -> Path:
-    """Path of the cached example dataset made by the scripted driver; records it if needed.
-
-    The dataset is recorded with ``env_cfg`` (keeping stable episodes only) and cached under
-    ``data_dir`` by env-config hash. A cached dataset that fails :func:`load_demos` is
-    recorded again.
-    """
+def record_recipe(env_cfg: EnvCfg, recipe: Any, path: str | os.PathLike, *,
+                  overwrite: bool = False, progress: bool = False,
+                  extra: Mapping[str, Any] | None = None) -> tuple[Path | None, Recording]:
+    """Record the scripted driver's dataset that ``recipe`` (a :class:`DemoRecipe` or its
+    values) describes into ``path``, in ``env_cfg`` with the recipe's episode keys changed."""
     from memrl.modules.scripted import ScriptedDriver
 
-    path = example_demos_path(env_cfg, data_dir)
+    r = recipe_values(recipe)
+    if (bad := recipe_error(r)) is not None:
+        raise ValueError(f"demo recipe '{bad[0]}': {bad[1]}")
+    env = {**env_config_values(env_cfg), **r["env"]}
+    return record_to_dataset(
+        env, ScriptedDriver(**r["driver"]), path, episodes=r["episodes"], seed=r["seed"],
+        keep_stable=True, tail_steps=r["tail_steps"], action_noise=float(r["action_noise"]),
+        source="scripted", overwrite=overwrite, progress=progress,
+        extra={"policy": {"_target_": "memrl.modules.scripted.ScriptedDriver", **r["driver"]},
+               "recipe": r, **dict(extra or {})})
+
+
+def ensure_example_demos(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None,
+                         recipe: Any = None, *, overwrite: bool = False,
+                         progress: bool = False) -> Path:
+    """Path of the cached scripted-driver dataset of ``recipe`` (None: the default
+    :class:`DemoRecipe`) for ``env_cfg``; records it if needed.
+
+    Cached under ``data_dir`` by env-config hash and recipe hash. A cached dataset that fails
+    :func:`load_demos` is recorded again.
+    """
+    path = example_demos_path(env_cfg, data_dir, recipe)
     if path.exists() and not overwrite:
         try:
             load_demos(path, env_cfg)
             return path
         except DemoDatasetError as e:
             log.warning("cached example dataset is unusable, recording it again: %s", e)
-    log.info("recording the example dataset (%d scripted episodes) into %s", episodes, path)
-    saved, rec = record_to_dataset(
-        env_cfg, ScriptedDriver(), path, episodes=episodes, seed=seed, keep_stable=True,
-        source="scripted", overwrite=True,
-        extra={"policy": {"_target_": "memrl.modules.scripted.ScriptedDriver"}, "example": True})
+    r = recipe_values(recipe)
+    log.info("recording the example dataset (%d scripted episodes) into %s", r["episodes"], path)
+    saved, rec = record_recipe(env_cfg, r, path, overwrite=True, progress=progress,
+                               extra={"example": True})
     if saved is None:
-        raise RuntimeError(f"the scripted driver kept no stable episode out of {episodes}; "
+        raise RuntimeError(f"the scripted driver kept no stable episode out of {r['episodes']}; "
                            f"recorded: {rec.stats()['recorded']}")
     return path

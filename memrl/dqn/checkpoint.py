@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import random
 import shutil
@@ -13,6 +14,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from memrl.data.recipe import LEGACY_RECIPE
 from memrl.errors import UserError
 
 RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
@@ -26,11 +28,17 @@ LEGACY_VALUES: dict[str, Any] = {
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
             "initial_curvature": 0.0, "frame_stack": 1, "num_envs": 1},
     "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
-                        "keep_best": True}, "stage2": {"demo_fraction": 0.0}},
+                        "keep_best": True}, "stage2": {"demo_fraction": 0.0},
+             "example": LEGACY_RECIPE},
 }
 """Keys added to the config after checkpoints were first written, at the value that does what
 the versions before them did: a checkpoint without a key is compared as if it held this
 value, so resuming it asks for exactly that value (``agent.overlap=false`` ...)."""
+
+
+LEGACY_NODES = ("example",)
+"""Keys of :data:`LEGACY_VALUES` whose value is a whole node added at once (other dict values
+only descend into the nodes a config has)."""
 
 
 def with_legacy_values(config: dict[str, Any], legacy: dict[str, Any] = LEGACY_VALUES,
@@ -40,8 +48,8 @@ def with_legacy_values(config: dict[str, Any], legacy: dict[str, Any] = LEGACY_V
     for key, value in legacy.items():
         if isinstance(value, dict) and isinstance(out.get(key), dict):
             out[key] = with_legacy_values(out[key], value)
-        elif key not in out and not isinstance(value, dict):
-            out[key] = value
+        elif key not in out and (not isinstance(value, dict) or key in LEGACY_NODES):
+            out[key] = copy.deepcopy(value)
     return out
 
 
@@ -74,6 +82,15 @@ def comparable(cfg: DictConfig) -> dict[str, Any]:
     data = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(data, dict)
     return {str(k): v for k, v in data.items() if k not in RUNTIME_KEYS}
+
+
+def used(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` without ``mode.example`` where no dataset is recorded from it (Default, or a
+    ``mode.demos_path`` given): a recipe a run never used cannot stop it from resuming."""
+    mode = config.get("mode")
+    if not isinstance(mode, dict) or (mode.get("name") in ("A", "B") and mode.get("demos_path") is None):
+        return config
+    return {**config, "mode": {k: v for k, v in mode.items() if k != "example"}}
 
 
 def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
@@ -175,7 +192,7 @@ def load_state(ckpt: Path, cfg: DictConfig | None = None) -> dict[str, Any]:
     except Exception as err:  # torch raises several types for a truncated or foreign file
         raise CheckpointError(f"{ckpt / 'state.pt'}: unreadable checkpoint ({err})") from err
     if cfg is not None:
-        diff = config_diff(with_legacy_values(state["config"]), comparable(cfg))
+        diff = config_diff(used(with_legacy_values(state["config"])), used(comparable(cfg)))
         if diff:
             raise CheckpointError(f"{ckpt}: checkpoint made under another config (resume with "
                                   "the checkpoint's values as overrides):\n  " + "\n  ".join(diff))

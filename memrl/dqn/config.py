@@ -11,6 +11,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl.data.recipe import DemoRecipe
 from memrl.errors import UserError
 
 PRECISIONS = ("auto", "float32", "bfloat16")
@@ -157,7 +158,10 @@ class ModeConfig:
     name: str = "default"
     """default | A | B."""
     demos_path: Any = None
-    """Dataset folder of prior knowledge (None: the cached scripted-driver example)."""
+    """Dataset folder of prior knowledge (None: the scripted driver's dataset of ``example``)."""
+    example: DemoRecipe = field(default_factory=DemoRecipe)
+    """How the prior knowledge is recorded when ``demos_path`` is null (recorded on first use,
+    cached under ``paths.data_dir``): the manoeuvre-focused recipe by default."""
     demo_fraction: float = 0.1
     """Mode A: share of the buffer permanently held by prior knowledge."""
     sampling: str = "stratified"
