@@ -487,11 +487,12 @@ class StudyConfig:
     """Untrained policies evaluated beside the runs."""
     train_overrides: list[str] = field(default_factory=list)
     """Overrides of every training run, e.g. [+experiment=smoke, total_frames=100000, device=cuda]."""
-    variants: dict[str, list[str]] = field(default_factory=dict)
-    """Ablations: variant name -> train overrides added to ``train_overrides`` for its runs, e.g.
+    variants: Any = None
+    """Ablations: variant name -> train overrides added after ``train_overrides`` for its runs, e.g.
     {cue: ['env.bev.path_length=20'], nocue: ['env.bev.path_length=0']}; the grid is then variants x
     modes x opponents x seeds, run folders ``<variant>_<mode>_<traffic>_s<seed>``, rows ``B (cue)``
-    ({}: one grid with ``train_overrides`` only)."""
+    (null or {}: one grid with ``train_overrides`` only). Typed ``Any``: a typed dict node refuses
+    new keys from the command line (Hydra's struct mode)."""
     report_overrides: list[str] = field(default_factory=list)
     """Overrides of the report config (``conf/report.yaml``), e.g. [n_resamples=2000]."""
     jobs: int = spec(1, ge=1)
@@ -540,9 +541,13 @@ def check_study(cfg: DictConfig) -> None:
             raise config_error(f"study.{key}", f"a value appears twice in {values}")
     grid = GRID_KEYS + (("opponent",) if s.opponents else ())
     lists = [("study.train_overrides", s.train_overrides)]
-    for name, overrides in (s.variants or {}).items():
-        if not re.fullmatch(VARIANT_NAME, str(name)):
-            raise config_error("study.variants", f"variant name {str(name)!r}: use letters, digits, '_', "
+    if s.variants is not None and not isinstance(s.variants, DictConfig | dict):
+        raise config_error("study.variants", f"give a mapping of names to lists of train overrides, e.g. "
+                           f"{{cue:['env.bev.path_length=20']}}, got {s.variants!r}")
+    for key_, overrides in (s.variants or {}).items():
+        name = str(key_)
+        if not re.fullmatch(VARIANT_NAME, name):
+            raise config_error("study.variants", f"variant name {name!r}: use letters, digits, '_', "
                                "'.' and '-' (up to 64, not starting with '.', '_' or '-'); it names run "
                                "folders")
         if not isinstance(overrides, ListConfig | list):

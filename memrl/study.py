@@ -70,8 +70,8 @@ def command_line(cfg: DictConfig) -> str:
                 f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
                 f"study.train_overrides={json.dumps(list(s.train_overrides))}"]
         if s.get("variants"):
-            args.append("study.variants={" + ",".join(f"{k}:{_quote([str(o) for o in v])}"
-                                                      for k, v in s.variants.items()) + "}")
+            args.append("study.variants={" + ",".join(f"{k}:{json.dumps(v)}"
+                                                      for k, v in variants_of(cfg).items()) + "}")
         protocol: dict[str, Any] = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
         args += [f"protocol.{k}={json.dumps(v).replace(' ', '')}" for k, v in protocol.items()]
     return " ".join(["python -m memrl.study", *(shlex.quote(a) for a in args)])
