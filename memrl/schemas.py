@@ -12,12 +12,13 @@ again at the start of each typed function. Importing this module does not import
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from memrl.data.recipe import DemoRecipe
 from memrl.errors import UserError, config_error
@@ -73,6 +74,9 @@ class TrainSchema:
     """tqdm progress bar."""
     resume: str | None = MISSING
     """A run folder to continue from its last checkpoint."""
+    variant: str | None = None
+    """A label only: the ``study.variants`` name of this run, set by ``memrl.study`` (row label
+    ``B (cue)``); null: none."""
     self_play_every: int = spec(ge=0)
     """Episodes between snapshots of the agent added to the learned cars' pool (0: off)."""
     debug: bool = MISSING
@@ -489,8 +493,10 @@ def check_preview(cfg: DictConfig) -> None:
 STUDY_MODES = ("Default", "A", "B")
 OPPONENTS = ("constant", "learned", "mixed")
 BASELINES = ("scripted", "random")
-GRID_KEYS = ("seed", "mode", "resume")
+GRID_KEYS = ("seed", "mode", "resume", "variant")
 """Train keys that the study's grid sets itself (``study.train_overrides`` may not)."""
+VARIANT_NAME = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}"
+"""A name of ``study.variants``: part of run folder names (``cue_B_constant_s0``) and row labels."""
 
 
 @dataclass
@@ -511,6 +517,12 @@ class StudyConfig:
     """Untrained policies evaluated beside the runs."""
     train_overrides: list[str] = field(default_factory=list)
     """Overrides of every training run, e.g. [+experiment=smoke, total_frames=100000, device=cuda]."""
+    variants: Any = None
+    """Ablations: variant name -> train overrides added after ``train_overrides`` for its runs, e.g.
+    {cue: ['env.bev.path_length=20'], nocue: ['env.bev.path_length=0']}; the grid is then variants x
+    modes x opponents x seeds, run folders ``<variant>_<mode>_<traffic>_s<seed>``, rows ``B (cue)``
+    (null or {}: one grid with ``train_overrides`` only). Typed ``Any``: a typed dict node refuses
+    new keys from the command line (Hydra's struct mode)."""
     report_overrides: list[str] = field(default_factory=list)
     """Overrides of the report config (``conf/report.yaml``), e.g. [n_resamples=2000]."""
     jobs: int = spec(1, ge=1)
@@ -522,7 +534,8 @@ class StudyConfig:
     stage1: bool = True
     """Also evaluate mode B's stage-1 weights (``checkpoints/stage1.pt``) on the protocol."""
     allow_changes: bool = False
-    """Go on in a study folder made with other ``train_overrides`` (finished runs are kept)."""
+    """Go on in a study folder made with other ``train_overrides`` or ``variants`` (finished runs
+    are kept)."""
     progress: bool = True
     """Progress bars of the evaluations."""
 
@@ -557,12 +570,26 @@ def check_study(cfg: DictConfig) -> None:
         if len(set(values)) != len(values):
             raise config_error(f"study.{key}", f"a value appears twice in {values}")
     grid = GRID_KEYS + (("opponent",) if s.opponents else ())
-    for o in s.train_overrides:
-        key = override_key(str(o))
-        if "=" not in str(o) or key in grid:
-            raise config_error("study.train_overrides", f"{o!r}: give key=value overrides of the train "
-                               f"config other than {', '.join(grid)} (the grid sets those: study.modes, "
-                               "study.seeds, study.opponents)")
+    lists = [("study.train_overrides", s.train_overrides)]
+    if s.variants is not None and not isinstance(s.variants, DictConfig | dict):
+        raise config_error("study.variants", f"give a mapping of names to lists of train overrides, e.g. "
+                           f"{{cue:['env.bev.path_length=20']}}, got {s.variants!r}")
+    for key_, overrides in (s.variants or {}).items():
+        name = str(key_)
+        if not re.fullmatch(VARIANT_NAME, name):
+            raise config_error("study.variants", f"variant name {name!r}: use letters, digits, '_', "
+                               "'.' and '-' (up to 64, not starting with '.', '_' or '-'); it names run "
+                               "folders")
+        if not isinstance(overrides, ListConfig | list):
+            raise config_error(f"study.variants.{name}", f"give a list of train overrides, got {overrides!r}")
+        lists.append((f"study.variants.{name}", overrides))
+    for where, overrides in lists:
+        for o in overrides:
+            key = override_key(str(o))
+            if "=" not in str(o) or key in grid:
+                raise config_error(where, f"{o!r}: give key=value overrides of the train config other "
+                                   f"than {', '.join(grid)} (the grid sets those: study.modes, study.seeds, "
+                                   "study.opponents, study.variants)")
     check_writable(str(s.dir), "study.dir")
 
 

@@ -1,7 +1,7 @@
 """``python -m memrl.study [study.modes=[...]] [study.seeds=[...]] study.train_overrides=[...]``.
 
-Table III from real training, in one folder (``study.dir``): every (mode, opponent, seed) run
-under ``runs/``, its evaluation on the protocol (``runs/<run>/eval/``), mode B's stage-1
+Table III from real training, in one folder (``study.dir``): every ([variant,] mode, opponent,
+seed) run under ``runs/``, its evaluation on the protocol (``runs/<run>/eval/``), mode B's stage-1
 weights evaluated too (``stage1/``), the scripted and random baselines (``baselines/``), then
 ``report.md``, ``table3.csv`` and the figures. The same command again resumes: finished runs
 are skipped, killed ones resume from their last checkpoint, finished evaluations are reused,
@@ -69,28 +69,53 @@ def command_line(cfg: DictConfig) -> str:
                 f"study.seeds=[{','.join(map(str, s.seeds))}]",
                 f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
                 f"study.train_overrides={json.dumps(list(s.train_overrides))}"]
+        if s.get("variants"):
+            args.append("study.variants={" + ",".join(f"{k}:{json.dumps(v)}"
+                                                      for k, v in variants_of(cfg).items()) + "}")
         protocol: dict[str, Any] = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
         args += [f"protocol.{k}={json.dumps(v).replace(' ', '')}" for k, v in protocol.items()]
     return " ".join(["python -m memrl.study", *(shlex.quote(a) for a in args)])
 
 
+def variants_of(cfg: DictConfig) -> dict[str, list[str]]:
+    """``study.variants`` as plain values."""
+    return {str(k): [str(o) for o in v] for k, v in (cfg.study.get("variants") or {}).items()}
+
+
 def check_record(folder: Path, cfg: DictConfig) -> None:
-    """Refuse a study folder made with other train overrides (unless ``allow_changes``), then
-    record this call's grid in ``study.json``."""
+    """Refuse a study folder made with other train overrides or other variants (unless
+    ``allow_changes``), then record this call's grid in ``study.json``.
+
+    A call may leave recorded variants out (as it may leave out seeds); a new variant, or one
+    with other overrides, is a change. The record keeps every variant ever run.
+    """
     s = cfg.study
     file = folder / STUDY_JSON
     now = [str(o) for o in s.train_overrides]
+    variants = variants_of(cfg)
     doc = json.loads(file.read_text()) if file.is_file() else {}
     before = doc.get("train_overrides", now)
     if before != now and not s.allow_changes:
         raise config_error("study.train_overrides", f"the study {folder} was made with {before}, this "
                            f"call gives {now}; give the same, another study.dir, or study.allow_changes=true "
                            "(finished runs are then kept as they are)")
+    known: dict[str, list[str]] = doc.get("variants", {}) if file.is_file() else dict(variants)
+    changed = {k: v for k, v in variants.items() if known.get(k) != v}
+    if changed and not s.allow_changes:
+        made = ", ".join(f"{k}: {v}" for k, v in known.items()) or "no variants"
+        raise config_error("study.variants", f"the study {folder} was made with {made}; this call adds or "
+                           f"changes {', '.join(f'{k}: {v}' for k, v in changed.items())}; give the same, "
+                           "another study.dir, or study.allow_changes=true (finished runs are then kept "
+                           "as they are)")
     history = doc.get("changes", [])
+    stamp = time.strftime("%Y-%m-%d %H:%M:%S")
     if before != now:
-        history.append({"from": before, "to": now, "at": time.strftime("%Y-%m-%d %H:%M:%S")})
-    record = {"train_overrides": now, "modes": list(s.modes), "seeds": list(s.seeds),
-              "opponents": list(s.opponents), "baselines": list(s.baselines),
+        history.append({"from": before, "to": now, "at": stamp})
+    if changed:
+        history.append({"key": "study.variants", "from": {k: known[k] for k in changed if k in known},
+                        "to": changed, "at": stamp})
+    record = {"train_overrides": now, "variants": {**known, **variants}, "modes": list(s.modes),
+              "seeds": list(s.seeds), "opponents": list(s.opponents), "baselines": list(s.baselines),
               "protocol": OmegaConf.to_container(cfg.protocol, resolve=True), "changes": history}
     folder.mkdir(parents=True, exist_ok=True)
     file.write_text(json.dumps(record, indent=2))
@@ -114,8 +139,11 @@ def report_config(cfg: DictConfig, folders: list[Path], labels: list[str],
     return compose_config("report", overrides)
 
 
-def _label(cell: Cell) -> str:
-    return cell.mode + ("" if cell.opponent == "constant" else f" ({cell.opponent})")
+def comparison_pairs(grid: list[Cell], labels: list[str]) -> list[list[str]]:
+    """B vs Default and A vs Default within each (variant, traffic): ``[B (cue), Default (cue)]``."""
+    suffixes = dict.fromkeys(c.label[len(c.mode):] for c in grid)
+    return [[f"{m}{sfx}", f"Default{sfx}"] for m in ("B", "A") for sfx in suffixes
+            if f"Default{sfx}" in labels and f"{m}{sfx}" in labels]
 
 
 def study(cfg: DictConfig) -> StudyResult:
@@ -153,10 +181,8 @@ def study(cfg: DictConfig) -> StudyResult:
         ev.evaluate_baseline(str(name), grid[0].cfg.env, folder / "baselines" / str(name),  # type: ignore[union-attr]
                              settings, evals)
 
-    labels = list(dict.fromkeys(_label(c) for c in finished))
-    pairs = [[f"{m}{sfx}", f"Default{sfx}"] for m in ("B", "A") for sfx in
-             dict.fromkeys(_label(c)[len(c.mode):] for c in grid) if f"Default{sfx}" in labels
-             and f"{m}{sfx}" in labels]
+    labels = list(dict.fromkeys(c.label for c in finished))
+    pairs = comparison_pairs(grid, labels)
     folders = [c.run_dir for c in finished] + [folder / "baselines" / str(b) for b in s.baselines]
     result = StudyResult(folder, folder / "report.md", folder / "table3.csv", outcome.skipped,
                          outcome.trained, outcome.resumed, outcome.failed, evals.made, evals.reused,
@@ -173,7 +199,7 @@ def study(cfg: DictConfig) -> StudyResult:
     protocol: dict = OmegaConf.to_container(cfg.protocol, resolve=True)  # type: ignore[assignment]
     write_report(ReportInputs(str(s.name), result.command, grid, finished, outcome.failed, evals.runs,
                               evals.stage1, evals.baselines, protocol, scfg, pairs,
-                              result.figures, result.wall_s), result.report)
+                              result.figures, result.wall_s, variants_of(cfg)), result.report)
     log.info("study %s: %d runs skipped, %d trained, %d resumed, %d failed; %d evaluations made, "
              "%d reused; report in %s", folder, len(result.skipped), len(result.trained),
              len(result.resumed), len(result.failed), len(result.evaluated), len(result.reused),

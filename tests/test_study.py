@@ -184,3 +184,109 @@ def test_the_command_line_runs_a_study(tmp_path):
     md = (folder / "report.md").read_text()
     assert "| Default | 1 |" in md and "| random | 1 |" in md
     assert (folder / "study.log").is_file() and "python -m memrl.study study.dir=" in md
+
+
+VARIANTS = "{cue:['env.bev.path_length=20'],nocue:['env.bev.path_length=0']}"
+"""Two variants of the tiny study: the car's path drawn into the view, or not."""
+
+
+def test_a_study_of_variants_trains_reports_and_compares_each_variant_on_its_own(tmp_path, compose_cfg):
+    from memrl.study import study
+
+    folder = tmp_path / "v"
+    cfg = compose_cfg("study", [*study_overrides(folder, report=("rollouts.rows=[]",)), "study.seeds=[0]",
+                                f"study.variants={VARIANTS}", "study.baselines=[random]"])
+    result = study(cfg)
+    assert sorted(result.trained) == ["cue_B_constant_s0", "cue_Default_constant_s0",
+                                      "nocue_B_constant_s0", "nocue_Default_constant_s0"]
+    for name, length in (("cue", 20.0), ("nocue", 0.0)):
+        for mode in ("Default", "B"):
+            saved = (folder / "runs" / f"{name}_{mode}_constant_s0" / "config.yaml").read_text()
+            assert f"path_length: {length}" in saved and f"variant: {name}" in saved
+        doc = json.loads((folder / "stage1" / f"{name}_B_constant_s0" / "eval.json").read_text())
+        assert doc["name"] == f"B ({name}) stage 1"
+    with result.table_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    assert {r["method"] for r in rows} == {"Default (cue)", "B (cue)", "Default (nocue)", "B (nocue)",
+                                           "random"}
+    assert all(r["paper"] == "" for r in rows if "(" in r["method"])  # not the paper's setting
+    with (folder / "differences.csv").open() as f:
+        pairs = {(r["a"], r["b"]) for r in csv.DictReader(f)}
+    assert pairs == {("B (cue)", "Default (cue)"), ("B (nocue)", "Default (nocue)")}
+    md = result.report.read_text()
+    for text in ("| B (cue) | 1 |", "| Default (nocue) | 1 |", "| B (nocue) stage 1 |",
+                 "grid: variants cue, nocue \u00d7 modes Default, B",
+                 "- variant cue: `env.bev.path_length=20`",
+                 "| B (cue) \u2212 Default (cue) | random goal |", "| cue_B_constant_s0 |",
+                 'study.variants={cue:["env.bev.path_length=20"],nocue:["env.bev.path_length=0"]}'):
+        assert text in md, text
+    assert json.loads((folder / "study.json").read_text())["variants"] == {
+        "cue": ["env.bev.path_length=20"], "nocue": ["env.bev.path_length=0"]}
+
+
+def test_without_variants_the_run_folders_and_labels_are_unchanged(tmp_path, compose_cfg):
+    from memrl.studies.grid import cells
+
+    plain = cells(compose_cfg("study", study_overrides(tmp_path)).study, tmp_path / "runs")
+    assert [(c.name, c.label) for c in plain] == [
+        ("Default_constant_s0", "Default"), ("Default_constant_s1", "Default"),
+        ("B_constant_s0", "B"), ("B_constant_s1", "B")]
+    assert all(c.cfg.variant is None and c.variant is None for c in plain)
+    cfg = compose_cfg("study", [*study_overrides(tmp_path, [*TRAIN, "env.bev.path_length=5"], "[B]"),
+                                "study.seeds=[0]", "study.opponents=[mixed]",
+                                "study.variants={cue:['env.bev.path_length=20'],base:[]}"])
+    grid = cells(cfg.study, tmp_path / "runs")
+    assert [(c.name, c.label) for c in grid] == [("cue_B_mixed_s0", "B (cue, mixed)"),
+                                                 ("base_B_mixed_s0", "B (base, mixed)")]
+    assert [c.cfg.env.bev.path_length for c in grid] == [20.0, 5.0]  # the variant's after the study's
+
+
+@pytest.mark.parametrize(("variants", "key", "text"), [
+    ("{c*u:['env.bev.path_length=20']}", "study.variants", "variant name 'c*u'"),
+    ("{a b:['env.bev.path_length=20']}", "study.variants", "variant name 'a b'"),
+    ("{.cue:['env.bev.path_length=20']}", "study.variants", "variant name '.cue'"),
+    ("[cue]", "study.variants", "give a mapping of names to lists"),
+    ("{cue:['env.bev.path_length']}", "study.variants.cue", "give key=value overrides"),
+    ("{cue:['seed=3']}", "study.variants.cue", "give key=value overrides"),
+])
+def test_a_bad_variant_is_refused_with_one_line(tmp_path, compose_cfg, variants, key, text):
+    from memrl.study import study
+
+    folder = tmp_path / "s"
+    cfg = compose_cfg("study", [*study_overrides(folder), f"study.variants={variants}"])
+    with pytest.raises(ConfigError) as info:
+        study(cfg)
+    message = str(info.value)
+    assert message.startswith(f"config '{key}':") and text in message and "\n" not in message
+    assert not folder.exists()  # refused before any write
+
+
+def test_adding_or_changing_a_variant_of_a_study_needs_allow_changes(tmp_path, compose_cfg):
+    from memrl.study import check_record
+
+    folder = tmp_path / "s"
+
+    def cfg(variants: str | None, *extra: str):
+        return compose_cfg("study", [*study_overrides(folder), *extra,
+                                     *([f"study.variants={variants}"] if variants else [])])
+
+    check_record(folder, cfg(None))  # a study made without variants
+    for variants in ("{cue:['env.bev.path_length=20']}", "{cue:['env.bev.path_length=20'],nocue:[]}"):
+        with pytest.raises(ConfigError, match="study.variants") as info:
+            check_record(folder, cfg(variants))
+        assert "\n" not in str(info.value) and "allow_changes" in str(info.value)
+    check_record(folder, cfg("{cue:['env.bev.path_length=20'],nocue:[]}", "study.allow_changes=true"))
+    check_record(folder, cfg("{cue:['env.bev.path_length=20']}"))  # a subset: no change
+    with pytest.raises(ConfigError, match="study.variants"):
+        check_record(folder, cfg("{cue:['env.bev.path_length=10']}"))
+    doc = json.loads((folder / "study.json").read_text())
+    assert doc["variants"] == {"cue": ["env.bev.path_length=20"], "nocue": []}
+    assert [c["key"] for c in doc["changes"]] == ["study.variants"]
+
+
+def test_a_run_saved_before_the_variant_key_still_resumes(compose_cfg):
+    from memrl.dqn.checkpoint import comparable, config_diff, with_legacy_values
+
+    cfg = compose_cfg("train", TRAIN)
+    old = {k: v for k, v in comparable(cfg).items() if k != "variant"}  # a checkpoint's config then
+    assert cfg.variant is None and config_diff(with_legacy_values(old), comparable(cfg)) == []

@@ -23,6 +23,7 @@ RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_
 
 
 LEGACY_VALUES: dict[str, Any] = {
+    "variant": None,
     "agent": {"precision": "float32", "overlap": False, "exploration": "epsilon", "ez_mu": 2.0,
               "ez_max_duration": 50, "temperature_start": 1.0, "temperature_end": 0.05},
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,

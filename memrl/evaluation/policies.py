@@ -29,6 +29,7 @@ from omegaconf import OmegaConf
 
 from memrl.checkpoint import load_qnet
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
 from memrl.modules.qnet import QNetwork
@@ -163,12 +164,14 @@ def run_config(run: Path) -> dict[str, Any]:
 
 
 def run_label(cfg: dict[str, Any]) -> str:
-    """Table III row label of a run config: its mode (Default, A, B), and the traffic it was
-    trained among when that is not constant-speed cars: ``A (mixed)``."""
+    """Table III row label of a run config: its mode (Default, A, B), its study variant if any
+    and the traffic it was trained among when that is not constant-speed cars: ``A (mixed)``,
+    ``A (cue)`` (:func:`~memrl.evaluation.rows.row_label`)."""
     mode = str(cfg.get("mode", {}).get("name", "default"))
     opponent = (cfg.get("env") or {}).get("opponent", "constant")
     traffic = opponent.get("type", "constant") if isinstance(opponent, dict) else str(opponent)
-    return MODE_LABELS.get(mode, mode) + ("" if traffic == "constant" else f" ({traffic})")
+    variant = cfg.get("variant")
+    return row_label(MODE_LABELS.get(mode, mode), str(traffic), str(variant) if variant else None)
 
 
 class CheckpointSource(PolicySource):

@@ -24,12 +24,21 @@ from omegaconf import OmegaConf
 from memrl.evaluation.results import EvalResult
 
 IGNORED_KEYS = ("seed", "progress", "resume", "paths", "logger", "log_every", "checkpoint_every",
-                "hydra", "task_name", "debug")
-"""Config keys (and key prefixes: ``paths`` covers ``paths.*``) that never split a row."""
+                "hydra", "task_name", "debug", "variant")
+"""Config keys (and key prefixes: ``paths`` covers ``paths.*``) that never split a row (a
+study variant is in the row's name already: :func:`row_label`)."""
 ROW_ORDER = ("Default", "A", "B", "scripted", "random", "human")
 """Rows in this order first (each followed by its other-traffic rows, ``B (mixed)``); other
 labels follow alphabetically."""
 _ABSENT = "<absent>"
+
+
+def row_label(mode: str, traffic: str = "constant", variant: str | None = None) -> str:
+    """Row label of trained runs: the mode (Default, A, B), then the study variant and the
+    traffic trained among when it is not constant-speed cars: ``B``, ``B (mixed)``, ``B (cue)``,
+    ``B (cue, mixed)``."""
+    extra = [p for p in (variant, None if traffic == "constant" else traffic) if p]
+    return mode + (f" ({', '.join(extra)})" if extra else "")
 
 
 @dataclass

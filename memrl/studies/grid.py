@@ -1,11 +1,13 @@
-"""The study's grid: one training run per (mode, opponent, seed), composed, resumed, trained.
+"""The study's grid: one training run per (variant, mode, opponent, seed), composed, resumed,
+trained.
 
 Each cell is trained by calling :func:`memrl.train.train` on the train config composed with
-Hydra's compose API (the user's ``study.train_overrides``, then the cell's mode, opponent and
-seed), in this process (``study.jobs=1``) or in ``study.jobs`` spawned processes. Why not
-Hydra's launcher: every cell needs its own decision first (skip a finished run, ``resume=`` a
-killed one, start a new one), and the study goes on to evaluate and report once all cells are
-done; a sweep of the train app decides neither.
+Hydra's compose API (the user's ``study.train_overrides``, its variant's overrides from
+``study.variants``, then the cell's mode, opponent, seed and variant name), in this process
+(``study.jobs=1``) or in ``study.jobs`` spawned processes. Why not Hydra's launcher: every cell
+needs its own decision first (skip a finished run, ``resume=`` a killed one, start a new one),
+and the study goes on to evaluate and report once all cells are done; a sweep of the train app
+decides neither.
 """
 
 from __future__ import annotations
@@ -55,10 +57,19 @@ class Cell:
     overrides: list[str]
     cfg: DictConfig | None = None
     """The composed train config (``paths.output_dir`` set to ``run_dir``)."""
+    variant: str | None = None
+    """Its name in ``study.variants`` (None: the study has no variants)."""
 
     @property
     def name(self) -> str:
         return self.run_dir.name
+
+    @property
+    def label(self) -> str:
+        """Its Table III row: ``B``, ``B (mixed)``, ``B (cue)``, ``B (cue, mixed)``."""
+        from memrl.evaluation.rows import row_label
+
+        return row_label(self.mode, self.opponent, self.variant)
 
     def finished(self) -> bool:
         """``summary.json`` and ``checkpoints/final.pt``: nothing left to train."""
@@ -70,22 +81,30 @@ class Cell:
         return not self.finished() and (self.run_dir / "checkpoints" / "last").is_dir()
 
 
+def cell_name(mode: str, traffic: str, seed: int, variant: str | None = None) -> str:
+    """A run's folder name: ``B_constant_s0``, with variants ``cue_B_constant_s0``."""
+    return (f"{variant}_" if variant else "") + f"{mode}_{traffic}_s{seed}"
+
+
 def cells(study: DictConfig, runs_dir: Path) -> list[Cell]:
     """The grid, composed (a bad train override stops here, naming the key)."""
     out = []
     opponents: list[str | None] = [str(o) for o in study.opponents] or [None]
+    variants: dict[str | None, list[str]] = {
+        str(k): [str(o) for o in v] for k, v in (study.get("variants") or {}).items()} or {None: []}
     user = [str(o) for o in study.train_overrides]
-    for mode in study.modes:
-        for opponent in opponents:
-            for seed in study.seeds:
-                grid = [*MODE_OVERRIDES[str(mode)], *([f"opponent={opponent}"] if opponent else []),
-                        f"seed={int(seed)}"]
-                overrides = [*CELL_DEFAULTS, *user, *grid]
-                cfg = compose_config("train", overrides)
-                traffic = str(cfg.env.opponent.type)
-                run_dir = runs_dir / f"{mode}_{traffic}_s{int(seed)}"
-                cfg.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run
-                out.append(Cell(str(mode), traffic, int(seed), run_dir, overrides, cfg))
+    for variant, extra in variants.items():
+        for mode in study.modes:
+            for opponent in opponents:
+                for seed in study.seeds:
+                    grid = [*MODE_OVERRIDES[str(mode)], *([f"opponent={opponent}"] if opponent else []),
+                            f"seed={int(seed)}", *([f"variant='{variant}'"] if variant else [])]
+                    overrides = [*CELL_DEFAULTS, *user, *extra, *grid]
+                    cfg = compose_config("train", overrides)
+                    traffic = str(cfg.env.opponent.type)
+                    run_dir = runs_dir / cell_name(str(mode), traffic, int(seed), variant)
+                    cfg.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run
+                    out.append(Cell(str(mode), traffic, int(seed), run_dir, overrides, cfg, variant))
     return out
 
 

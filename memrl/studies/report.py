@@ -13,7 +13,7 @@ import os
 import platform
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,8 @@ class ReportInputs:
     comparisons: list[list[str]]
     figures: list[Path]
     wall_s: float
+    variants: dict[str, list[str]] = field(default_factory=dict)
+    """``study.variants``: name -> its train overrides ({}: none)."""
 
 
 def cpu_model() -> str:
@@ -221,15 +223,18 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
     results = [*inputs.runs, *inputs.baselines]
     rows = stats.table(results, inputs.stats)
     p = inputs.protocol
-    grid = f"modes {', '.join(dict.fromkeys(c.mode for c in inputs.cells))} \u00d7 traffic " \
-           f"{', '.join(dict.fromkeys(c.opponent for c in inputs.cells))} \u00d7 seeds " \
-           f"{', '.join(str(s) for s in dict.fromkeys(c.seed for c in inputs.cells))}"
+    names = list(dict.fromkeys(c.variant for c in inputs.cells if c.variant))
+    axes = [("variants", names), ("modes", [c.mode for c in inputs.cells]),
+            ("traffic", [c.opponent for c in inputs.cells]), ("seeds", [str(c.seed) for c in inputs.cells])]
+    grid = " \u00d7 ".join(f"{axis} {', '.join(dict.fromkeys(values))}" for axis, values in axes if values)
     evals = sum(r.wall_s for r in [*results, *inputs.stage1])
     train_wall = sum(float(_summary(c).get("wall_s", 0.0)) for c in inputs.finished)
     lines = [f"# Study {inputs.name}: Table III from trained agents", "",
              f"- command: `{inputs.command}`",
              f"- grid: {grid} ({len(inputs.finished)} of {len(inputs.cells)} runs finished); baselines: "
              f"{', '.join(dict.fromkeys(r.name for r in inputs.baselines)) or 'none'}",
+             *[f"- variant {k}: `{' '.join(v) or '(no overrides)'}`" for k, v in inputs.variants.items()
+               if k in names],
              *budget(inputs.cells, inputs.finished),
              f"- protocol: {p['episodes']} episodes per initial lane ({', '.join(p['initial_lanes'])}), "
              f"{p['vehicles_count'][0]}\u2013{p['vehicles_count'][1]} other cars, {p['duration']} steps, "
@@ -252,7 +257,8 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
     lines += ["## Files", "",
               "`table3.csv` (this table, long format, with the paper's column), `table3.md` and "
               "`differences.csv` (every comparison), `report.json` (all numbers and sources), "
-              "`study.json` (the grid), `runs/<mode>_<traffic>_s<seed>/` (each run and its `eval/`), "
+              "`study.json` (the grid), `runs/[<variant>_]<mode>_<traffic>_s<seed>/` (each run and its "
+              "`eval/`), "
               "`stage1/` (mode B's stage-1 evaluations), `baselines/`.", ""]
     path.write_text("\n".join(lines))
     return path
