@@ -258,6 +258,8 @@ def test_example_dataset_is_recorded_once_then_reused(tmp_path, monkeypatch):
     path = ensure_example_demos(env, tmp_path, ONE_EPISODE)
     assert path == example_demos_path(env, tmp_path, ONE_EPISODE) and path.parent == tmp_path
     assert path != example_demos_path(env, tmp_path, {**ONE_EPISODE, "seed": 1})  # one per recipe
+    unset = {**ONE_EPISODE, "driver": {"merge_window": None}}  # null: the driver's default
+    assert example_demos_path(env, tmp_path, unset) == path
     assert load_demos(path, env).shape == (60,)
     assert read_metadata(path)["stats"]["kept"]["goal"] == 1
 

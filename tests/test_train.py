@@ -166,6 +166,14 @@ def test_checkpoint_from_before_the_demo_recipe_asks_for_the_old_example(compose
                 train(again, demos=demos)
             assert "mode.example.episodes: 10 (checkpoint) vs 12 (now)" in str(err.value)
             assert "mode.example.action_noise: 0.0 (checkpoint) vs 0.2 (now)" in str(err.value)
+            old_example = ["mode.example.episodes=10", "mode.example.tail_steps=null",
+                           "mode.example.action_noise=0", "mode.example.driver.merge_window=null",
+                           "mode.example.driver.speed_tolerance=null",
+                           "mode.example.env.initial_lane=null",
+                           "mode.example.env.vehicles_count=null"]
+            assert train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={run}", *extra,
+                                                      *old_example]),
+                         demos=demos).resumed_from_episode == 1
         else:
             assert train(again).resumed_from_episode == 1
 

@@ -39,10 +39,12 @@ class DemoRecipe:
     """Probability per step of a random action, not stored (0: none)."""
     driver: dict[str, Any] = field(
         default_factory=lambda: {"merge_window": 12.0, "speed_tolerance": 0.3})
-    """ScriptedDriver keyword arguments (conf/demos/scripted.yaml documents each)."""
+    """ScriptedDriver keyword arguments (conf/demos/scripted.yaml documents each; null: its
+    default)."""
     env: dict[str, Any] = field(
         default_factory=lambda: {"initial_lane": "non_goal", "vehicles_count": [0, 5]})
-    """Env values used for recording only; keys from :data:`RECIPE_ENV_KEYS`."""
+    """Env values used for recording only; keys from :data:`RECIPE_ENV_KEYS` (null: the
+    training env's own)."""
 
 
 LEGACY_RECIPE: dict[str, Any] = {"episodes": 10, "seed": 0, "tail_steps": None,
@@ -54,9 +56,9 @@ driver in the training env's own episodes (what a checkpoint without ``mode.exam
 def recipe_values(recipe: Any) -> dict[str, Any]:
     """A recipe (dataclass, DictConfig or mapping) as plain values, defaults filled in."""
     if isinstance(recipe, DemoRecipe):
-        return asdict(recipe)
+        recipe = asdict(recipe)
     if recipe is None:
-        return asdict(DemoRecipe())
+        recipe = {}
     try:
         from omegaconf import DictConfig, OmegaConf
 
@@ -64,7 +66,10 @@ def recipe_values(recipe: Any) -> dict[str, Any]:
             recipe = OmegaConf.to_container(recipe, resolve=True)
     except ImportError:  # pragma: no cover - omegaconf is a core dependency
         pass
-    return {**asdict(DemoRecipe()), **dict(recipe)}
+    values = {**asdict(DemoRecipe()), **dict(recipe)}
+    for part in ("driver", "env"):  # null: not set (the driver's default, the training env's own)
+        values[part] = {str(k): v for k, v in dict(values[part] or {}).items() if v is not None}
+    return values
 
 
 def recipe_error(recipe: Any) -> tuple[str, str] | None:

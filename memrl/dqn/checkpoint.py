@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.data.recipe import LEGACY_RECIPE
+from memrl.data.recipe import LEGACY_RECIPE, recipe_values
 from memrl.errors import UserError
 
 RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
@@ -89,8 +89,10 @@ def used(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` without ``mode.example`` where no dataset is recorded from it (Default, or a
     ``mode.demos_path`` given): a recipe a run never used cannot stop it from resuming."""
     mode = config.get("mode")
-    if not isinstance(mode, dict) or (mode.get("name") in ("A", "B") and mode.get("demos_path") is None):
+    if not isinstance(mode, dict) or "example" not in mode:
         return config
+    if mode.get("name") in ("A", "B") and mode.get("demos_path") is None:  # compared as recorded
+        return {**config, "mode": {**mode, "example": recipe_values(mode["example"])}}
     return {**config, "mode": {k: v for k, v in mode.items() if k != "example"}}
 
 
