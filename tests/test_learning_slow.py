@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
-from memrl.benchmarks.stage1_check import CONF_DIR, drive_greedy, record_variant_demos
+from memrl.benchmarks.stage1_check import drive_greedy, record_variant_demos
 from memrl.data.demos import load_demos
 from memrl.dqn.loop import Trainer
 
@@ -24,15 +23,13 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path, seed
         f"paths.data_dir={tmp_path / 'data'}", f"seed={seed}",
     ])
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
-    # Manoeuvre-focused prior knowledge, the `imitation` recipe of conf/bench.yaml (README):
-    # 240 non-goal starts among 0-5 cars, each kept up to 30 steps after the target lane is
-    # reached, from the position-rule driver, recorded with 20% random actions of which only
-    # the driver's recoveries are stored. Stage 1 drives 40 episodes of its own scenes every
-    # 1,000 updates, stops at 75% of them or 20,000 updates and keeps the weights that drove
-    # best; the 20 episodes below are other scenes (seeds 10,000+).
-    bench_cfg = OmegaConf.load(Path(CONF_DIR) / "bench.yaml")
-    recipe = next(v for v in bench_cfg.stage1.variants if v.name == "imitation").demos
-    recipe = {**OmegaConf.to_container(recipe), "seed": 5000 * seed}  # its own demo episodes
+    # The default prior knowledge (mode.example, memrl/data/recipe.py; README): 240 non-goal
+    # starts among 0-5 cars, each kept up to 30 steps after the target lane is reached, from
+    # the position-rule driver, recorded with 20% random actions of which only the driver's
+    # recoveries are stored. Stage 1 drives 40 episodes of its own scenes every 1,000 updates,
+    # stops at 75% of them or 20,000 updates and keeps the weights that drove best; the 20
+    # episodes below are other scenes (seeds 10,000+).
+    recipe = {"seed": 5000 * seed}  # its own demo episodes
     start = time.perf_counter()
     path = record_variant_demos(env_cfg, recipe, tmp_path / "demos")
     record_s = time.perf_counter() - start
@@ -55,3 +52,28 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path, seed
     (tmp_path / "report.json").write_text(json.dumps(report))
     # "survives and reaches the target in most of 20 episodes": both in the same episode
     assert both >= 11, report
+
+
+@pytest.mark.slow
+def test_mode_b_changes_lanes_after_stage_2(compose_cfg, tmp_path):
+    """Mode B end to end on the default prior knowledge with ``+experiment=imitation``:
+    stage 1 until its drives say it changes lanes, then STAGE2_FRAMES env steps of stage 2 on
+    16 envs; the final greedy agent drives 20 non-goal test episodes among 0-5 cars (scenes
+    10,000+, never trained on) and changes into the target lane in at least REACHED_BAR."""
+    from memrl.checkpoint import load_qnet
+    from memrl.train import train
+
+    cfg = compose_cfg("train", [
+        "+mode=B", "+experiment=imitation", "progress=false", "logger=none", "seed=0",
+        f"paths.data_dir={tmp_path / 'data'}", f"total_frames={STAGE2_FRAMES}",
+        "total_episodes=null", "env.num_envs=16", "eval.every=0",
+    ])
+    start = time.perf_counter()
+    summary = train(cfg, tmp_path / "run")
+    qnet, _ = load_qnet(tmp_path / "run" / "checkpoints" / "final.pt")
+    env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
+    survived, reached, both = drive_greedy(qnet, env_cfg, 20)
+    report = {"frames": summary.frames, "updates": summary.updates, "wall_s": round(time.perf_counter() - start, 1),
+              "survived_of_20": survived, "reached_of_20": reached, "both_of_20": both}
+    print(json.dumps(report))
+    assert reached >= REACHED_BAR, report
