@@ -54,6 +54,12 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path, seed
     assert both >= 11, report
 
 
+STAGE2_FRAMES = 4000
+"""Stage-2 env steps of the mode B check (1,000 updates at the default replay ratio)."""
+REACHED_BAR = 8
+"""Test episodes of 20 in which the final agent must reach the target lane."""
+
+
 @pytest.mark.slow
 def test_mode_b_changes_lanes_after_stage_2(compose_cfg, tmp_path):
     """Mode B end to end on the default prior knowledge with ``+experiment=imitation``:
@@ -73,7 +79,8 @@ def test_mode_b_changes_lanes_after_stage_2(compose_cfg, tmp_path):
     qnet, _ = load_qnet(tmp_path / "run" / "checkpoints" / "final.pt")
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     survived, reached, both = drive_greedy(qnet, env_cfg, 20)
-    report = {"frames": summary.frames, "updates": summary.updates, "wall_s": round(time.perf_counter() - start, 1),
-              "survived_of_20": survived, "reached_of_20": reached, "both_of_20": both}
+    report = {"frames": summary.frames, "updates": summary.updates,
+              "wall_s": round(time.perf_counter() - start, 1), "survived_of_20": survived,
+              "reached_of_20": reached, "both_of_20": both}
     print(json.dumps(report))
     assert reached >= REACHED_BAR, report
