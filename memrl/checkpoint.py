@@ -7,7 +7,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig, OmegaConf
 
+from memrl.data.demos import env_config_hash
 from memrl.dqn.checkpoint import CheckpointError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
@@ -52,14 +54,36 @@ def qnet_weights(state: dict[str, Any], prefix: str = "value_network_params.") -
     return out
 
 
-def load_stage1_qnet(path: str | Path) -> QNetwork:
-    """The Q-network at the end of mode B's stage 1: ``<run>/checkpoints/stage1.pt`` (or that
-    file), saved by the trainer as ``{"loss_module": DQNLoss state, "stage1": ...}``; a file in
-    the ``final.pt`` format (``{"qnet": ...}``) is read as such."""
+def stage1_file(path: str | Path) -> Path:
+    """``<run>/checkpoints/stage1.pt`` of a mode B run folder, its ``checkpoints`` folder or
+    the file itself."""
     p = Path(path)
     file = next((c for c in (p, p / "stage1.pt", p / "checkpoints" / "stage1.pt") if c.is_file()), None)
     if file is None:
         raise CheckpointError(f"{path}: no stage-1 network (expected checkpoints/stage1.pt of a mode B run)")
+    return file
+
+
+def stage1_source(path: str | Path, env_cfg: Any) -> Path:
+    """The stage-1 weights that ``mode.stage1.init`` names, checked: present, and trained in
+    the same env config as ``env_cfg`` (the pixels mean the same) when the run folder's
+    ``config.yaml`` is there to tell."""
+    file = stage1_file(path)
+    run_cfg = file.parent.parent / "config.yaml"
+    if run_cfg.is_file():
+        loaded = OmegaConf.load(run_cfg)
+        theirs = loaded.get("env") if isinstance(loaded, DictConfig) else None
+        if theirs is not None and env_config_hash(theirs) != env_config_hash(env_cfg):
+            raise CheckpointError(f"{file}: trained in another env config than this run's "
+                                  f"(see {run_cfg}, key env)")
+    return file
+
+
+def load_stage1_qnet(path: str | Path) -> QNetwork:
+    """The Q-network at the end of mode B's stage 1: ``<run>/checkpoints/stage1.pt`` (or that
+    file), saved by the trainer as ``{"loss_module": DQNLoss state, "stage1": ...}``; a file in
+    the ``final.pt`` format (``{"qnet": ...}``) is read as such."""
+    file = stage1_file(path)
     try:
         state = torch.load(file, weights_only=False, map_location="cpu")
         weights = state["qnet"] if "qnet" in state else qnet_weights(state["loss_module"])

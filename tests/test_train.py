@@ -76,6 +76,46 @@ def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, 
     assert all(0 <= v <= 1 for part in s1.parts for v in part.values())
 
 
+def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg, tmp_path, demos):
+    """mode.stage1.init: stage 2 starts from the named run's stage-1 weights (online and
+    target), with a fresh Adam, and runs the same stage-2 schedule as that run did."""
+    b = TINY + ["+mode=B", "mode.stage1.criterion=max_updates"]
+    source = train(compose_cfg("train", b), tmp_path / "src", demos=demos)
+    src_updates = source.stage1["updates"]
+    assert src_updates == 12
+    cfg = compose_cfg("train", b + [f"mode.stage1.init={tmp_path / 'src'}",
+                                       "agent.exploration=ez_greedy"])
+    trainer = Trainer(cfg, tmp_path / "run", demos)
+    trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
+    trainer.run_stage1()
+    assert trainer.counters.stage == "B2" and trainer.counters.updates == 0
+    assert trainer.stage1.stop_reason.startswith(f"from {tmp_path / 'src' / 'checkpoints' / 'stage1.pt'}")
+    assert trainer.stage1.updates == src_updates  # its record, not new updates
+    theirs = torch.load(tmp_path / "src" / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
+    copy = torch.load(tmp_path / "run" / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
+    now = trainer.learner.loss_module.state_dict()
+    online = [k for k in theirs if k.startswith("value_network_params")]
+    assert online and all(torch.equal(theirs[k], copy[k]) and torch.equal(theirs[k], now[k])
+                          and torch.equal(theirs[k], now["target_" + k]) for k in online)
+    assert not trainer.learner.optimizer.state
+    summary = train(compose_cfg("train", b + [f"mode.stage1.init={tmp_path / 'src'}"]),
+                    tmp_path / "run2", demos=demos)
+    from memrl.dqn.schedule import UpdateSchedule
+
+    rounds = UpdateSchedule(4, 20, 1).rounds_due  # TINY's train_every and warmup_frames
+    assert source.updates == src_updates + rounds(source.frames)
+    assert summary.updates == rounds(summary.frames)  # stage-2 updates only
+    # refused at start, one line each, no run folder left
+    for overrides, match in (
+            ([f"mode.stage1.init={tmp_path / 'nothing'}"], "no stage-1 network"),
+            (["env.duration=31", f"mode.stage1.init={tmp_path / 'src'}"], "another env config"),
+            ([f"mode.stage1.init={tmp_path / 'src'}"], "only mode B")):
+        mode = [] if "only mode B" in match else ["+mode=B"]
+        with pytest.raises(ValueError, match=f"config 'mode.stage1.init': .*{match}"):
+            train(compose_cfg("train", TINY + mode + overrides), tmp_path / "bad", demos=demos)
+        assert not (tmp_path / "bad").exists()
+
+
 class Killed(RuntimeError):
     pass
 

@@ -134,6 +134,11 @@ class Stage1Config:
     lr: float | None = None
     """Adam learning rate of stage 1 (None: ``agent.lr``). Stage 2 starts a fresh Adam at
     ``agent.lr`` whatever this is."""
+    init: Any = None
+    """A mode B run folder (or its ``checkpoints/stage1.pt``) whose stage-1 weights this run's
+    stage 2 starts from, training no stage 1 of its own: one pretraining shared by stage-2
+    variants (exploration, budgets, ...). Its env config must equal this run's; the run's own
+    ``checkpoints/stage1.pt`` is a copy. Null: train stage 1 here."""
 
 
 @dataclass

@@ -28,7 +28,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
-from memrl.checkpoint import save_qnet
+from memrl.checkpoint import save_qnet, stage1_source
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.builder import FIRST_STAGE, NEXT_STAGE, Stage, build_stage
 from memrl.dqn.collector import Collector, EpisodeEnd, Steps
@@ -155,6 +155,9 @@ class Trainer:
         """
         checks, p = self.stage1_checks, self.stage1
         assert checks is not None
+        if (init := self.cfg.mode.stage1.get("init")) is not None:
+            self._stage1_from(stage1_source(str(init), self.cfg.env))
+            return
         while not p.done:
             batch = self.stage.buffer.sample()
             self._book([batch], [self.learner.update(batch)])
@@ -230,6 +233,16 @@ class Trainer:
                                           self.stage1) if self.stage.offline else None
         self.acting: TensorDictSequential | None = None if self.stage.offline else TensorDictSequential(
             self.rounds.acting_net, self.stage.explore)
+
+    def _stage1_from(self, file: Path) -> None:
+        """Stage 1 done elsewhere (``mode.stage1.init``): its weights and record, then the switch."""
+        state = torch.load(file, weights_only=False, map_location=self.device)
+        self.learner.loss_module.load_state_dict(state["loss_module"])
+        for key, value in state.get("stage1", {}).items():
+            setattr(self.stage1, key, value)
+        self.stage1.stop_reason = f"from {file} ({self.stage1.stop_reason or 'stage 1'})"
+        self._finish_stage1()
+        self.save_checkpoint()
 
     def _finish_stage1(self) -> None:
         """Stage 1 is over: save its weights; stage 2 starts from them (online and target
