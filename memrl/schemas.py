@@ -143,12 +143,10 @@ def check_train(cfg: DictConfig) -> None:
     if cfg.mode.name in ("A", "B") and demos is None:
         check_recipe(cfg.mode.get("example"), cfg.env, "mode.example")
     init = cfg.mode.stage1.get("init") if "stage1" in cfg.mode else None
-    if init is not None:
+    if init is not None and cfg.mode.name == "B":  # like every stage-1 key, unused by Default and A
         from memrl.checkpoint import stage1_source
         from memrl.dqn.checkpoint import CheckpointError
 
-        if cfg.mode.name != "B":
-            raise config_error("mode.stage1.init", f"only mode B has a stage 1 (this is {cfg.mode.name})")
         try:
             stage1_source(str(init), cfg.env)
         except CheckpointError as e:

@@ -108,12 +108,14 @@ def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg
     # refused at start, one line each, no run folder left
     for overrides, match in (
             ([f"mode.stage1.init={tmp_path / 'nothing'}"], "no stage-1 network"),
-            (["env.duration=31", f"mode.stage1.init={tmp_path / 'src'}"], "another env config"),
-            ([f"mode.stage1.init={tmp_path / 'src'}"], "only mode B")):
-        mode = [] if "only mode B" in match else ["+mode=B"]
+            (["env.duration=31", f"mode.stage1.init={tmp_path / 'src'}"], "another env config")):
         with pytest.raises(ValueError, match=f"config 'mode.stage1.init': .*{match}"):
-            train(compose_cfg("train", TINY + mode + overrides), tmp_path / "bad", demos=demos)
+            train(compose_cfg("train", TINY + ["+mode=B", *overrides]), tmp_path / "bad", demos=demos)
         assert not (tmp_path / "bad").exists()
+    # like every stage-1 key, Default does not use it (a study's variant applies to every mode)
+    default = train(compose_cfg("train", TINY + [f"mode.stage1.init={tmp_path / 'nothing'}"]),
+                    tmp_path / "default")
+    assert default.mode == "default" and default.stage1["updates"] == 0
 
 
 class Killed(RuntimeError):
