@@ -63,6 +63,11 @@ def test_presets_win_over_the_defaults(compose_cfg):
     paper = compose_cfg("train", ["+experiment=paper", "+mode=B"])
     assert paper.total_episodes == 100000 and paper.mode.name == "B"
     assert paper.agent.eps_decay_frames == 1000000
+    from memrl.data.recipe import LEGACY_RECIPE, recipe_values
+
+    # whole noiseless episodes in the training env's own episodes, not the manoeuvre recipe
+    assert recipe_values(paper.mode.example) == recipe_values(LEGACY_RECIPE)
+    assert recipe_values(compose_cfg("train", ["+mode=B"]).mode.example)["action_noise"] == 0.2
 
 
 def command(args: list[str]) -> subprocess.CompletedProcess:
