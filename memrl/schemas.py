@@ -134,6 +134,9 @@ def check_train(cfg: DictConfig) -> None:
     _eval_node(cfg)
     check_env(cfg.env)
     check_device(cfg.device, "device")
+    if cfg.get("variant") is not None and not re.fullmatch(VARIANT_NAME, str(cfg.variant)):
+        raise config_error("variant", f"a label of letters, digits, '_', '.', '-' (as study.variants "
+                           f"names), got {cfg.variant!r}")
     if cfg.resume is not None and not Path(cfg.resume).is_dir():
         raise config_error("resume", f"no run folder {cfg.resume}")
     demos = cfg.mode.get("demos_path")

@@ -70,6 +70,7 @@ ROWS = [
     ("train", ["self_play_every=5"], "self_play_every"),
     ("train", ["debug=maybe"], "debug"),
     ("train", ["seeed=1"], "seeed"),
+    ("train", ["variant=a/b"], "variant"),
     # train: the groups
     ("train", ["buffer.capacity=-1"], "buffer.capacity"),
     ("train", ["agent.lr=-1"], "agent.lr"),
