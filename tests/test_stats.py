@@ -180,6 +180,14 @@ def test_row_labels_name_nested_keys_and_every_difference(tmp_path, compose_cfg)
                       "A (agent.lr=0.001, mode.demo_fraction=0.1)"]
 
 
+def test_each_seeds_own_stage1_source_does_not_split_a_row(tmp_path, compose_cfg):
+    """mode.stage1.init names a different run per seed (``.../B_constant_s${seed}``): one row."""
+    for seed in (0, 1):
+        _runs(tmp_path / "b", compose_cfg, "B", [seed], [f"mode.stage1.init=/s/B_constant_s{seed}"])
+    groups = rows.split_rows(find_results([tmp_path]))
+    assert [(g.label, len(g.results)) for g in groups] == [("B", 2)]
+
+
 def test_ignored_keys_match_the_report_config(compose_cfg):
     assert tuple(compose_cfg("report", ["runs=[.]"]).row_ignore) == rows.IGNORED_KEYS
     assert rows.is_ignored("paths.output_dir", rows.IGNORED_KEYS) and not rows.is_ignored("seeds", ["seed"])

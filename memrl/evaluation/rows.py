@@ -24,9 +24,10 @@ from omegaconf import OmegaConf
 from memrl.evaluation.results import EvalResult
 
 IGNORED_KEYS = ("seed", "progress", "resume", "paths", "logger", "log_every", "checkpoint_every",
-                "hydra", "task_name", "debug", "variant")
+                "hydra", "task_name", "debug", "variant", "mode.stage1.init")
 """Config keys (and key prefixes: ``paths`` covers ``paths.*``) that never split a row (a
-study variant is in the row's name already: :func:`row_label`)."""
+study variant is in the row's name already: :func:`row_label`; ``mode.stage1.init`` names
+each seed's own stage-1 run, e.g. ``.../B_constant_s${seed}``)."""
 ROW_ORDER = ("Default", "A", "B", "scripted", "random", "human")
 """Rows in this order first (each followed by its other-traffic rows, ``B (mixed)``); other
 labels follow alphabetically."""
