@@ -20,6 +20,7 @@ TINY = [
     "agent.warmup_frames=20", "agent.batch_size=8", "agent.train_every=4", "log_every=5",
     "buffer.capacity=400", "checkpoint_every=1", "progress=false", "logger=none",
     "mode.stage1.max_updates=12", "mode.stage1.check_every=4",
+    "mode.stage1.criterion=agreement_or_plateau", "mode.stage1.drive_episodes=0",
 ]
 """Overrides that make a training run take seconds."""
 

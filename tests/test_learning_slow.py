@@ -54,10 +54,13 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path, seed
     assert both >= 11, report
 
 
-STAGE2_FRAMES = 4000
-"""Stage-2 env steps of the mode B check (1,000 updates at the default replay ratio)."""
-REACHED_BAR = 8
-"""Test episodes of 20 in which the final agent must reach the target lane."""
+STAGE2_FRAMES = 20_000
+"""Stage-2 env steps of the mode B check (4,876 updates at the default replay ratio)."""
+REACHED_BAR = 4
+"""Test episodes of 20 in which the final agent must reach the target lane (the random policy:
+3 of 100). The same runs in the study cand20k (docs/results/issue20) reached it in 51, 40 and
+39 of 100 protocol episodes from non-goal starts (seeds 0-2; this check is seed 0) and in 7, 7
+and 7 of these 20 episodes; 4 leaves room for another CPU's arithmetic."""
 
 
 @pytest.mark.slow

@@ -83,6 +83,19 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
     assert (folder / "fig5.png").is_file() and (folder / "study.json").is_file()
     assert (folder / "fig_stage2.png").is_file() and (folder / "fig7_B.png").is_file()
     assert "![fig_stage2](fig_stage2.png)" in md
+    # training episodes: Default's row from its two episodes.csv, by hand
+    lengths, late_lengths = [], []
+    for seed in (0, 1):
+        with (folder / "runs" / f"Default_constant_s{seed}" / "episodes.csv").open() as f:
+            eps = list(csv.DictReader(f))
+        end = float(eps[-1]["env_steps"])
+        lengths.append(sum(float(e["length"]) for e in eps) / len(eps))
+        late = [float(e["length"]) for e in eps if float(e["env_steps"]) > 0.75 * end]
+        late_lengths.append(sum(late) / len(late))
+    row = next(x for x in md.splitlines() if x.startswith("| Default | ") and "(" in x and "[" not in x)
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert cells[2] == f"{(lengths[0] + lengths[1]) / 2:.1f} ({lengths[0]:.1f}, {lengths[1]:.1f})"
+    assert cells[3].startswith(f"{(late_lengths[0] + late_lengths[1]) / 2:.1f} (")
 
 
 def test_stage1_weights_are_evaluated_from_the_loss_module(first):

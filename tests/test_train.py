@@ -170,7 +170,8 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
                                                                             tmp_path):
     """A checkpoint whose config predates agent.precision/agent.overlap: resuming it with the
     new defaults is refused naming both; with the old behaviour's values it resumes."""
-    legacy = ["agent.precision=float32", "agent.overlap=false"]
+    legacy = ["agent.precision=float32", "agent.overlap=false", "env.bev.path_length=0",
+              "mode.stage1.lr=null"]
     train(compose_cfg("train", TINY + ["total_episodes=1", *legacy]), tmp_path)
     state_file = tmp_path / "checkpoints" / "last" / "state.pt"
     state = torch.load(state_file, weights_only=False)
@@ -183,7 +184,9 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
     with pytest.raises(ckpt.CheckpointError, match="agent.overlap") as err:
         train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
     assert "agent.precision: 'float32' (checkpoint) vs 'auto' (now)" in str(err.value)
-    assert "path_length" not in str(err.value) and "stage1.lr" not in str(err.value)
+    # keys older than those are compared at what the versions before them did
+    assert "env.bev.path_length: 0.0 (checkpoint) vs 20.0 (now)" in str(err.value)
+    assert "mode.stage1.lr: None (checkpoint) vs 0.001 (now)" in str(err.value)
     resumed = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}",
                                                  *legacy]))
     assert resumed.resumed_from_episode == 1 and resumed.episodes == 2

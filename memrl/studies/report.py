@@ -169,6 +169,58 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
     return lines + [""]
 
 
+LATE = 0.75
+"""Training episodes that end after this share of a run's env steps are its "late" ones."""
+
+
+def training_episodes(run: Path) -> dict[str, float] | None:
+    """A run's training episodes (``episodes.csv``; mode B: stage 2's, stage 1 has none): mean
+    length [action steps] over all of them and over the late ones, and the share [%] of the
+    late ones that collided and that reached the target lane."""
+    import csv
+
+    path = run / "episodes.csv"
+    if not path.is_file():
+        return None
+    with path.open(newline="") as f:
+        eps = [{k: float(row[k]) for k in ("env_steps", "length", "collided", "reached_target")}
+               for row in csv.DictReader(f)]
+    if not eps:
+        return None
+    late = [e for e in eps if e["env_steps"] > LATE * eps[-1]["env_steps"]] or eps[-1:]
+
+    def mean(rows: list[dict[str, float]], key: str) -> float:
+        return float(np.mean([r[key] for r in rows]))
+
+    return {"episodes": len(eps), "length": mean(eps, "length"), "late_length": mean(late, "length"),
+            "late_collided": 100 * mean(late, "collided"), "late_reached": 100 * mean(late, "reached_target")}
+
+
+def training_section(finished: Sequence[Cell]) -> list[str]:
+    """Per row: the training episodes' mean length and, late in training, how they ended."""
+    rows: dict[str, list[dict[str, float]]] = {}
+    for c in finished:
+        if (t := training_episodes(c.run_dir)) is not None:
+            rows.setdefault(c.label, []).append(t)
+    if not rows:
+        return []
+    late = f"last {100 * (1 - LATE):.0f}% of env steps"
+    lines = ["## Training episodes", "",
+             f"How the training episodes went (exploration included): mean over seeds (per-seed values); "
+             f"“late” are the episodes that ended in the {late}.", "",
+             "| row | episodes | mean length [steps] | late: mean length [steps] | late: collided [%] "
+             "| late: reached target [%] |", "|---|---|---|---|---|---|"]
+
+    def cell(values: list[float]) -> str:
+        return f"{np.mean(values):.1f} ({', '.join(f'{v:.1f}' for v in values)})"
+
+    for label, ts in rows.items():
+        lines.append(f"| {label} | {cell([t['episodes'] for t in ts])} | {cell([t['length'] for t in ts])} | "
+                     f"{cell([t['late_length'] for t in ts])} | {cell([t['late_collided'] for t in ts])} | "
+                     f"{cell([t['late_reached'] for t in ts])} |")
+    return lines + [""]
+
+
 def _periodic(run: Path) -> list[dict[str, float]]:
     import csv
 
@@ -252,7 +304,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
         lines += [f"Not finished: {', '.join(missing)}.", ""]
     lines += ["## Table III: survival and goal scores (per 100 episodes)", "",
               tables.side_by_side(rows, inputs.stats.confidence), *comparisons(inputs, results),
-              *stage1_section(inputs), "## Figures", ""]
+              *stage1_section(inputs), *training_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
     lines += ["## Files", "",
               "`table3.csv` (this table, long format, with the paper's column), `table3.md` and "
