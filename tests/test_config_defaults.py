@@ -63,6 +63,8 @@ def test_presets_win_over_the_defaults(compose_cfg):
     paper = compose_cfg("train", ["+experiment=paper", "+mode=B"])
     assert paper.total_episodes == 100000 and paper.mode.name == "B"
     assert paper.agent.eps_decay_frames == 1000000
+    assert paper.mode.stage1.margin_weight == 0 and paper.mode.stage1.lr is None
+    assert paper.env.bev.path_length == 0
     from memrl.data.recipe import LEGACY_RECIPE, recipe_values
 
     # whole noiseless episodes in the training env's own episodes, not the manoeuvre recipe
