@@ -1,6 +1,6 @@
 """How the scripted prior knowledge that modes A and B use by default is recorded.
 
-A plain dataclass (no torch): it is the typed ``mode.example`` node of the training config and
+A plain dataclass (omegaconf, no torch): the typed ``mode.example`` node of the training config and
 the ``recipe`` of ``python -m memrl.record example=true``, and names the cached dataset.
 """
 
@@ -10,6 +10,8 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
 
 RECIPE_ENV_KEYS = ("initial_lane", "vehicles_count", "target_lane", "initial_speed",
                    "initial_offset", "initial_heading", "initial_curvature", "other_speed")
@@ -59,13 +61,8 @@ def recipe_values(recipe: Any) -> dict[str, Any]:
         recipe = asdict(recipe)
     if recipe is None:
         recipe = {}
-    try:
-        from omegaconf import DictConfig, OmegaConf
-
-        if isinstance(recipe, DictConfig):
-            recipe = OmegaConf.to_container(recipe, resolve=True)
-    except ImportError:  # pragma: no cover - omegaconf is a core dependency
-        pass
+    if isinstance(recipe, DictConfig):
+        recipe = OmegaConf.to_container(recipe, resolve=True)
     values = {**asdict(DemoRecipe()), **dict(recipe)}
     for part in ("driver", "env"):  # null: not set (the driver's default, the training env's own)
         values[part] = {str(k): v for k, v in dict(values[part] or {}).items() if v is not None}
