@@ -136,3 +136,18 @@ def test_group_files_hold_only_what_differs_from_their_schema(path, schema):
         if cur == value:
             repeated.append(key)
     assert not repeated, f"conf/{path} repeats the schema's defaults of {repeated}"
+
+
+@pytest.mark.parametrize("mode", ["A", "B"])
+def test_mode_files_comment_the_composed_defaults(compose_cfg, mode):
+    """``conf/mode/<mode>.yaml`` lists its keys in comments (``#   key: value  doc``): each listed
+    value is the composed default, so the comments cannot drift from the dataclasses."""
+    import re
+
+    cfg = compose_cfg("train", [f"+mode={mode}"])
+    listed = re.findall(r"^#   ([a-z_.0-9]+): (\S+)", (CONF / "mode" / f"{mode}.yaml").read_text(),
+                        flags=re.M)
+    assert len(listed) >= (5 if mode == "A" else 15)
+    for key, text in listed:
+        have = OmegaConf.select(cfg.mode, key)
+        assert have == yaml.safe_load(text), f"mode.{key}: composed {have!r}, commented {text}"

@@ -405,6 +405,26 @@ def test_drive_check_counts_the_behaviour_in_its_own_scenes(compose_cfg):
     assert not set(scenario_seeds(0, 20, "stage1")) & set(scenario_seeds(0, 100, "test"))
 
 
+@pytest.mark.parametrize("mode, stage, overrides, weight", [
+    ("A", "A", [], 0.0),  # the paper's A: eq. (1) alone
+    ("A", "A", ["mode.margin_weight=1.5"], 1.5),
+    ("B", "B2", ["mode.stage2.demo_fraction=0.25"], 0.0),  # the paper's B
+    ("B", "B2", ["mode.stage2.demo_fraction=0.25", "mode.stage2.margin_weight=2"], 2.0),
+    ("B", "B1", ["mode.stage1.margin_weight=3", "mode.stage2.demo_fraction=0.25",
+                 "mode.stage2.margin_weight=2"], 3.0),
+])
+def test_each_stage_sets_its_own_margin_weight(compose_cfg, demos, mode, stage, overrides, weight):
+    from memrl.dqn.builder import build_stage
+    from memrl.dqn.learner import Learner
+
+    cfg = compose_cfg("train", TINY + [f"+mode={mode}", "mode.stage1.margin=0.6"] + overrides)
+    learner = Learner(cfg.agent)
+    learner.margin_weight = 99.0  # whatever the stage before it used
+    build_stage(stage, cfg, learner, demos, num_envs=1, device=torch.device("cpu"))
+    assert learner.margin_weight == weight
+    assert weight == 0 or learner.margin == 0.6
+
+
 def test_stage2_keeps_prior_knowledge_at_its_stratified_share(compose_cfg, tmp_path, demos):
     cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage2.demo_fraction=0.25"])
     summary = train(cfg, tmp_path, demos=demos)

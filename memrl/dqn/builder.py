@@ -4,6 +4,8 @@ Stages: ``default`` (plain double DQN), ``A`` (prior knowledge holds ``demo_frac
 buffer, stratified batches), ``B1`` (mode B stage 1: prior knowledge only, + large-margin loss,
 no env steps) and ``B2`` (mode B stage 2: from B1's weights, trains as Default; with
 ``mode.stage2.demo_fraction > 0`` the prior knowledge stays in its buffer as in mode A).
+A and B2 add the large-margin loss on their batches' demos when ``mode.margin_weight`` /
+``mode.stage2.margin_weight`` > 0.
 """
 
 from __future__ import annotations
@@ -79,6 +81,9 @@ def build_stage(name: str, cfg: DictConfig, learner: Learner, demos: TensorDictB
         float(m.stage2.get("demo_fraction", 0.0)) if name == "B2" else 0.0
     if share > 0:
         assert demos is not None
+        learner.margin_weight = float(m.get("margin_weight", 0.0)) if name == "A" else \
+            float(m.stage2.get("margin_weight", 0.0))
+        learner.margin = float(m.stage1.margin)
         buffer: Any = PriorKnowledgeBuffer(demos, capacity, share, batch, sampling=str(m.sampling),
                                            **store)
     else:

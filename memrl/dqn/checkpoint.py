@@ -29,7 +29,8 @@ LEGACY_VALUES: dict[str, Any] = {
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
             "initial_curvature": 0.0, "frame_stack": 1, "num_envs": 1},
     "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
-                        "keep_best": True, "init": None}, "stage2": {"demo_fraction": 0.0},
+                        "keep_best": True, "init": None}, "stage2": {"demo_fraction": 0.0, "margin_weight": 0.0},
+             "margin_weight": 0.0,
              "example": LEGACY_RECIPE},
 }
 """Keys added to the config after checkpoints were first written, at the value that does what

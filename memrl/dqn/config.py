@@ -160,6 +160,10 @@ class Stage2Config:
     demo_fraction: float = 0.0
     """Share of stage 2's buffer (and of each stratified batch) that the prior knowledge keeps
     holding, as in mode A (0: none, the paper's B: stage 2 trains as Default)."""
+    margin_weight: float = 0.0
+    """Weight of stage 1's large-margin loss (``stage1.margin``) on the demo items of stage 2's
+    batches, DQfD's remedy for the drop after pretraining (0: eq. (1) alone, the paper's B).
+    Needs ``demo_fraction > 0``."""
 
 
 @dataclass
@@ -175,6 +179,9 @@ class ModeConfig:
     cached under ``paths.data_dir``): the manoeuvre-focused recipe by default."""
     demo_fraction: float = 0.1
     """Mode A: share of the buffer permanently held by prior knowledge."""
+    margin_weight: float = 0.0
+    """Mode A: weight of the large-margin loss (``stage1.margin``) on the demo items of each
+    batch, as DQfD (0: eq. (1) alone, the paper's A); mode B's is ``stage2.margin_weight``."""
     sampling: str = "stratified"
     """Mode A: stratified (exactly round(demo_fraction x batch) demos per batch) or
     proportional (uniform over the union: the demo count per batch is binomial)."""
@@ -231,6 +238,12 @@ def check_train_config(cfg: DictConfig) -> None:
           "need 0 <= eps_end <= eps_start <= 1")
     _need(0 <= s2.demo_fraction < 1, "mode.stage2.demo_fraction",
           f"must be in [0, 1), got {s2.demo_fraction}")
+    for key, weight in (("mode.margin_weight", m.get("margin_weight", 0.0)),
+                        ("mode.stage1.margin_weight", s1.margin_weight),
+                        ("mode.stage2.margin_weight", s2.get("margin_weight", 0.0))):
+        _need(weight >= 0, key, f"must be >= 0, got {weight}")
+    _need(s2.get("margin_weight", 0.0) == 0 or s2.demo_fraction > 0, "mode.stage2.margin_weight",
+          "acts on the demos of stage 2's batches: needs mode.stage2.demo_fraction > 0")
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")
     share = {"A": m.demo_fraction, "B": m.stage2.get("demo_fraction", 0.0)}.get(m.name, 0.0)
