@@ -263,3 +263,22 @@ def test_rows_of_other_traffic_follow_their_mode():
     names = ["random", "B (learned)", "zeta", "B", "Default (mixed)", "Default", "A"]
     assert sorted(names, key=row_rank) == ["Default", "Default (mixed)", "A", "B", "B (learned)",
                                            "random", "zeta"]
+
+
+def test_the_study_report_counts_non_goal_episodes_that_survived_and_reached(tmp_path):
+    from memrl.evaluation.protocol import ProtocolConfig, scenario_seeds
+    from memrl.evaluation.results import write_result
+    from memrl.studies.report import both_section
+    from tests.eval_helpers import records
+
+    def result(unit: str, survived: list[bool], goal: list[bool]):
+        recs = records(survived, goal, "non_goal", seeds=scenario_seeds(0, 4)) + \
+            records([True] * 4, [True] * 4, "random", seeds=scenario_seeds(0, 4))  # not counted
+        return write_result(tmp_path / unit, "B", recs, ProtocolConfig(episodes=4),
+                            scenario_seeds(0, 4), {"unit": unit})
+
+    # seed 0: survived & reached only in episode 0 (1 of 4); seed 1: episodes 1 and 2 (2 of 4)
+    a = result("seed 0", [True, True, False, False], [True, False, True, False])
+    b = result("seed 1", [False, True, True, True], [True, True, True, False])
+    assert "| B | 2 | 37.5 | seed 0: 25, seed 1: 50 |" in both_section([a, b])
+    assert both_section([]) == []

@@ -169,6 +169,28 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
     return lines + [""]
 
 
+def both_section(results: Sequence[EvalResult]) -> list[str]:
+    """Per row, the non-goal test episodes that both survived and reached the target lane (per
+    100; the lane change done safely, which survival and goal count apart)."""
+    rows: dict[str, list[tuple[str, float]]] = {}
+    for r in results:
+        recs = [x for x in r.records() if x.initial_lane == "non_goal"]
+        if recs:
+            rows.setdefault(r.name, []).append(
+                (r.unit, 100 * sum(x.survived and x.goal for x in recs) / len(recs)))
+    if not rows:
+        return []
+    lines = ["## Non-goal starts: survived and reached the target", "",
+             "Test episodes from non-goal starts that both survived and reached the target lane, per "
+             "100 episodes: mean over units (per-unit values).", "",
+             "| row | n | survived and reached | per unit |", "|---|---|---|---|"]
+    for label, units in rows.items():
+        values = [v for _, v in units]
+        per = ", ".join(f"{u}: {v:.0f}" for u, v in units)
+        lines.append(f"| {label} | {len(values)} | {np.mean(values):.1f} | {per} |")
+    return lines + [""]
+
+
 LATE = 0.75
 """Training episodes that end after this share of a run's env steps are its "late" ones."""
 
@@ -304,7 +326,8 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
         lines += [f"Not finished: {', '.join(missing)}.", ""]
     lines += ["## Table III: survival and goal scores (per 100 episodes)", "",
               tables.side_by_side(rows, inputs.stats.confidence), *comparisons(inputs, results),
-              *stage1_section(inputs), *training_section(inputs.finished), "## Figures", ""]
+              *stage1_section(inputs), *both_section([*inputs.runs, *inputs.stage1, *inputs.baselines]),
+              *training_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
     lines += ["## Files", "",
               "`table3.csv` (this table, long format, with the paper's column), `table3.md` and "
