@@ -102,7 +102,8 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
         with (folder / "stage1" / f"B_constant_s{seed}" / "episodes.csv").open() as f:
             ng = [e for e in csv.DictReader(f) if e["initial_lane"] == "non_goal"]
         both.append(100 * sum(e["survived"] == "1" and e["goal"] == "1" for e in ng) / len(ng))
-    assert f"| B stage 1 | 2 | {(both[0] + both[1]) / 2:.1f} | seed 0: {both[0]:.0f}, seed 1: {both[1]:.0f} |" in md
+    row = f"| B stage 1 | 2 | {(both[0] + both[1]) / 2:.1f} | seed 0: {both[0]:.0f}, seed 1: {both[1]:.0f} |"
+    assert row in md
 
 
 def test_stage1_weights_are_evaluated_from_the_loss_module(first):

@@ -91,3 +91,19 @@ def recipe_hash(recipe: Any) -> str:
     """sha256 of the recipe's sorted JSON: part of the cached dataset's folder name."""
     text = json.dumps(recipe_values(recipe), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def used(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` without the ``mode`` keys the run never reads: a Default run reads only
+    ``mode.name``; an A or B run reads ``mode.example`` only where it records its dataset from it
+    (no ``mode.demos_path``). A setting a run never used cannot stop it from resuming."""
+    mode = config.get("mode")
+    if not isinstance(mode, dict):
+        return config
+    if mode.get("name") not in ("A", "B"):
+        return {**config, "mode": {"name": mode.get("name")}}
+    if "example" not in mode:
+        return config
+    if mode.get("demos_path") is None:  # compared as recorded
+        return {**config, "mode": {**mode, "example": recipe_values(mode["example"])}}
+    return {**config, "mode": {k: v for k, v in mode.items() if k != "example"}}

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.data.recipe import LEGACY_RECIPE, recipe_values
+from memrl.data.recipe import LEGACY_RECIPE, used
 from memrl.errors import UserError
 
 RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
@@ -29,7 +29,8 @@ LEGACY_VALUES: dict[str, Any] = {
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
             "initial_curvature": 0.0, "frame_stack": 1, "num_envs": 1},
     "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
-                        "keep_best": True, "init": None}, "stage2": {"demo_fraction": 0.0, "margin_weight": 0.0},
+                        "keep_best": True, "init": None},
+             "stage2": {"demo_fraction": 0.0, "margin_weight": 0.0},
              "margin_weight": 0.0,
              "example": LEGACY_RECIPE},
 }
@@ -84,17 +85,6 @@ def comparable(cfg: DictConfig) -> dict[str, Any]:
     data = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(data, dict)
     return {str(k): v for k, v in data.items() if k not in RUNTIME_KEYS}
-
-
-def used(config: dict[str, Any]) -> dict[str, Any]:
-    """``config`` without ``mode.example`` where no dataset is recorded from it (Default, or a
-    ``mode.demos_path`` given): a recipe a run never used cannot stop it from resuming."""
-    mode = config.get("mode")
-    if not isinstance(mode, dict) or "example" not in mode:
-        return config
-    if mode.get("name") in ("A", "B") and mode.get("demos_path") is None:  # compared as recorded
-        return {**config, "mode": {**mode, "example": recipe_values(mode["example"])}}
-    return {**config, "mode": {k: v for k, v in mode.items() if k != "example"}}
 
 
 def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:

@@ -21,6 +21,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from memrl.data.recipe import used
 from memrl.evaluation.results import EvalResult
 
 IGNORED_KEYS = ("seed", "progress", "resume", "paths", "logger", "log_every", "checkpoint_every",
@@ -91,6 +92,8 @@ def run_settings(result: EvalResult, ignore: Sequence[str] = IGNORED_KEYS) -> di
     if not found:
         return {}
     tree = OmegaConf.to_container(OmegaConf.load(found[0] / "config.yaml"), resolve=False)
+    if isinstance(tree, dict):  # keys the run never read (Default: mode.*) split no row
+        tree = used({str(k): v for k, v in tree.items()})
     return {k: v for k, v in flatten(tree).items() if not is_ignored(k, ignore)}
 
 
