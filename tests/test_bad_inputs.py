@@ -58,7 +58,7 @@ ROWS = [
     ("train", ["env.num_envs=0"], "num_envs"),
     ("train", ["env.num_envs=500", "buffer.capacity=400"], "env.num_envs"),
     ("train", ["mode.stage2.demo_fraction=1.5"], "mode.stage2.demo_fraction"),
-    ("train", ["mode.stage2.margin_weight=1"], "mode.stage2.margin_weight"),
+    ("train", ["mode.stage2.margin_weight=-1"], "mode.stage2.margin_weight"),
     ("train", ["mode.margin_weight=-1"], "mode.margin_weight"),
     ("train", ["total_frames=-5"], "total_frames"),
     ("train", ["total_frames=0"], "total_frames"),

@@ -420,9 +420,10 @@ def test_drive_check_counts_the_behaviour_in_its_own_scenes(compose_cfg):
 
 
 @pytest.mark.parametrize("mode, stage, overrides, weight", [
-    ("A", "A", [], 0.0),  # the paper's A: eq. (1) alone
-    ("A", "A", ["mode.margin_weight=1.5"], 1.5),
-    ("B", "B2", ["mode.stage2.demo_fraction=0.25"], 0.0),  # the paper's B
+    ("A", "A", [], 3.0),
+    ("A", "A", ["mode.margin_weight=0"], 0.0),  # the paper's A: eq. (1) alone
+    ("B", "B2", ["mode.stage2.demo_fraction=0.25"], 3.0),
+    ("B", "B2", ["mode.stage2.demo_fraction=0.25", "mode.stage2.margin_weight=0"], 0.0),
     ("B", "B2", ["mode.stage2.demo_fraction=0.25", "mode.stage2.margin_weight=2"], 2.0),
     ("B", "B1", ["mode.stage1.margin_weight=3", "mode.stage2.demo_fraction=0.25",
                  "mode.stage2.margin_weight=2"], 3.0),
@@ -444,5 +445,11 @@ def test_stage2_keeps_prior_knowledge_at_its_stratified_share(compose_cfg, tmp_p
     summary = train(cfg, tmp_path, demos=demos)
     assert summary.stage == "B2"
     stage2 = [r for r in rows(tmp_path / "updates.csv") if r["stage"] == "B2"]
-    # exactly round(0.25 x 8) = 2 demos in every stage-2 batch; the paper's B (0) has none
+    # exactly round(0.25 x 8) = 2 demos in every stage-2 batch
     assert stage2 and {(r["demo_count_min"], r["demo_count_max"]) for r in stage2} == {("2", "2")}
+    # the paper's B (0) has none, whatever the margin weight (nothing for it to act on)
+    paper_b = compose_cfg("train", TINY + ["+mode=B", "mode.stage2.demo_fraction=0"])
+    assert paper_b.mode.stage2.margin_weight == 3
+    train(paper_b, tmp_path / "paper_b", demos=demos)
+    stage2 = [r for r in rows(tmp_path / "paper_b" / "updates.csv") if r["stage"] == "B2"]
+    assert stage2 and {(r["demo_count_min"], r["demo_count_max"]) for r in stage2} == {("0", "0")}
