@@ -56,11 +56,13 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path, seed
 
 STAGE2_FRAMES = 20_000
 """Stage-2 env steps of the mode B check (4,876 updates at the default replay ratio)."""
-REACHED_BAR = 4
+REACHED_BAR = 10
 """Test episodes of 20 in which the final agent must reach the target lane (the random policy:
-3 of 100). The same runs in the study cand20k (docs/results/issue20) reached it in 51, 40 and
-39 of 100 protocol episodes from non-goal starts (seeds 0-2; this check is seed 0) and in 7, 7
-and 7 of these 20 episodes; 4 leaves room for another CPU's arithmetic."""
+3 of 100). On today's defaults (stage 2 keeps the demos at 10% with the margin loss) the runs
+of the study margin20k (docs/results/issue20, section 5; stage 2 from the study cand20k's
+stage-1 weights, seeds 0-2; this check is seed 0) reached it in 17, 18 and 14 of these 20
+episodes; the paper's stage 2 from the same weights in 7, 7 and 7. 10 leaves room for another
+CPU's arithmetic and a stage 1 of its own."""
 
 
 @pytest.mark.slow
