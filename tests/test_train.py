@@ -54,7 +54,10 @@ def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
     assert not trainer.learner.optimizer.state
     # agreement >= 0 holds at the first check: stage 1 stops after check_every updates
     assert trainer.stage1.updates == 4 and trainer.stage1.stop_reason.startswith("agreement")
-    assert trainer.counters.stage == "B2" and len(trainer.stage.buffer) == 0
+    # a fresh buffer: no agent data yet, the prior knowledge at round(0.1 x 400) = 40 items
+    buffer = trainer.stage.buffer
+    assert trainer.counters.stage == "B2" and len(buffer.online_buffer) == 0
+    assert len(buffer.offline_buffer) == len(buffer) == 40
     saved = torch.load(tmp_path / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
     now = trainer.learner.loss_module.state_dict()
     online = [k for k in saved if k.startswith("value_network_params")]
