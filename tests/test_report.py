@@ -280,5 +280,7 @@ def test_the_study_report_counts_non_goal_episodes_that_survived_and_reached(tmp
     # seed 0: survived & reached only in episode 0 (1 of 4); seed 1: episodes 1 and 2 (2 of 4)
     a = result("seed 0", [True, True, False, False], [True, False, True, False])
     b = result("seed 1", [False, True, True, True], [True, True, True, False])
-    assert "| B | 2 | 37.5 | seed 0: 25, seed 1: 50 |" in both_section([a, b])
-    assert both_section([]) == []
+    from memrl.evaluation.stats import StatsConfig
+
+    assert "| B | 2 | 37.5 | seed 0: 25, seed 1: 50 |" in both_section([[a, b]], StatsConfig())
+    assert both_section([[]], StatsConfig()) == []

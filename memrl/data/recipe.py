@@ -93,6 +93,7 @@ def recipe_hash(recipe: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+# Here, beside recipe_values: checkpoints and report rows both need it, and this module imports no torch
 def used(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` without the ``mode`` keys the run never reads: a Default run reads only
     ``mode.name``; an A or B run reads ``mode.example`` only where it records its dataset from it

@@ -169,26 +169,25 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
     return lines + [""]
 
 
-def both_section(results: Sequence[EvalResult]) -> list[str]:
-    """Per row, the non-goal test episodes that both survived and reached the target lane (per
-    100; the lane change done safely, which survival and goal count apart)."""
-    rows: dict[str, list[tuple[str, float]]] = {}
-    for r in results:
-        recs = [x for x in r.records() if x.initial_lane == "non_goal"]
-        if recs:
-            rows.setdefault(r.name, []).append(
-                (r.unit, 100 * sum(x.survived and x.goal for x in recs) / len(recs)))
-    if not rows:
+def both_section(groups: Sequence[Sequence[EvalResult]], cfg: stats.StatsConfig) -> list[str]:
+    """Per Table III row (each of ``groups`` split into rows as the table is), the non-goal
+    test episodes that both survived and reached the target lane (per 100; the lane change done
+    safely, which survival and goal count apart)."""
+    lines = []
+    for results in groups:
+        for g in stats.rows_of(results, cfg):
+            units = [(r.unit, [x for x in r.records() if x.initial_lane == "non_goal"]) for r in g.results]
+            values = [(u, 100 * sum(x.survived and x.goal for x in recs) / len(recs))
+                      for u, recs in units if recs]
+            if values:
+                per = ", ".join(f"{u}: {v:.0f}" for u, v in values)
+                lines.append(f"| {g.label} | {len(values)} | {np.mean([v for _, v in values]):.1f} | {per} |")
+    if not lines:
         return []
-    lines = ["## Non-goal starts: survived and reached the target", "",
-             "Test episodes from non-goal starts that both survived and reached the target lane, per "
-             "100 episodes: mean over units (per-unit values).", "",
-             "| row | n | survived and reached | per unit |", "|---|---|---|---|"]
-    for label, units in rows.items():
-        values = [v for _, v in units]
-        per = ", ".join(f"{u}: {v:.0f}" for u, v in units)
-        lines.append(f"| {label} | {len(values)} | {np.mean(values):.1f} | {per} |")
-    return lines + [""]
+    return ["## Non-goal starts: survived and reached the target", "",
+            "Test episodes from non-goal starts that both survived and reached the target lane, per "
+            "100 episodes: mean over units (per-unit values).", "",
+            "| row | n | survived and reached | per unit |", "|---|---|---|---|", *lines, ""]
 
 
 LATE = 0.75
@@ -326,7 +325,8 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
         lines += [f"Not finished: {', '.join(missing)}.", ""]
     lines += ["## Table III: survival and goal scores (per 100 episodes)", "",
               tables.side_by_side(rows, inputs.stats.confidence), *comparisons(inputs, results),
-              *stage1_section(inputs), *both_section([*inputs.runs, *inputs.stage1, *inputs.baselines]),
+              *stage1_section(inputs),
+              *both_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *training_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
     lines += ["## Files", "",
