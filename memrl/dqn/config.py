@@ -150,8 +150,9 @@ class Stage1Config:
 @dataclass
 class Stage2Config:
     """Mode B stage 2: double DQN from the stage-1 weights; by default the prior knowledge
-    stays at 10% of its buffer and batches with the margin loss on it (DQfD), which removed
-    the drop after the switch. ``+experiment=paper``: plain double DQN as Default."""
+    stays at 10% of its buffer and batches with the margin loss on it (DQfD), which kept most
+    of what stage 1 learned (without it both scores dropped after the switch).
+    ``+experiment=paper``: plain double DQN as Default."""
 
     eps_start: float = 0.3
     """Stage 2 starts less random than a fresh agent: the stage-1 network already drives."""
@@ -166,7 +167,7 @@ class Stage2Config:
     """Weight of stage 1's large-margin loss (``stage1.margin``) on the demo items of stage 2's
     batches, DQfD's remedy for the drop after pretraining (0: eq. (1) alone, the paper's B).
     Acts only where ``demo_fraction > 0`` (with 0 no batch holds a demo). With both (0.1,
-    3) B kept what stage 1 learned: at 20,000 env steps, non-goal survival / goal 77 / 73
+    3) B kept most of what stage 1 learned: at 20,000 env steps, non-goal survival / goal 77 / 73
     against 23 / 43 without (docs/results/issue20)."""
 
 
