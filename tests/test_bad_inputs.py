@@ -78,6 +78,7 @@ ROWS = [
     ("train", ["agent.lr=-1"], "agent.lr"),
     ("train", ["agent.batch_size=0"], "agent.batch_size"),
     ("train", ["eval.every=-1"], "eval.every"),
+    ("train", ["eval.unit=frames"], "eval.unit"),
     ("train", ["eval.episodes=0"], "eval.episodes"),
     ("train", ["eval.initial_lanes=[left]"], "eval.initial_lanes"),
     ("train", ["env.vehicles_count=[5,0]"], "vehicles_count"),

@@ -326,6 +326,26 @@ class Logger:
         self.points.append((name, value, step))
 
 
+def test_periodic_evaluation_by_env_steps_at_each_multiple_crossed(tmp_path):
+    """``unit: env_steps``, every 100: a row at the first call past 100, 200, ... (one for a
+    call that crosses two), none from episode ends; a resume keeps the rows up to its
+    checkpoint and goes on from the checkpoint's env steps."""
+    net = QNetwork()
+    pe = PeriodicEvaluation({"every": 100, "unit": "env_steps", "episodes": 1}, {"duration": 5},
+                            tmp_path)
+    assert pe.after_episode(net, 100, 100) is None
+    frames = [16, 96, 112, 128, 304, 320, 400]
+    done = [pe.after_steps(net, i, f) is not None for i, f in enumerate(frames)]
+    assert done == [False, False, True, False, True, False, True]
+    with (tmp_path / PERIODIC_CSV).open() as f:
+        assert [(int(r["episode"]), int(r["env_steps"])) for r in csv.DictReader(f)] == [
+            (2, 112), (4, 304), (6, 400)]
+    pe.rewind(5, 320)  # the checkpoint came after the row at 304, before the one at 400
+    with (tmp_path / PERIODIC_CSV).open() as f:
+        assert [int(r["env_steps"]) for r in csv.DictReader(f)] == [112, 304]
+    assert pe.after_steps(net, 5, 336) is None and pe.after_steps(net, 6, 400) is not None
+
+
 def test_periodic_evaluation_as_the_training_loop_would_call_it(tmp_path):
     torch.manual_seed(0)
     net, logger = QNetwork(), Logger()
@@ -340,7 +360,8 @@ def test_periodic_evaluation_as_the_training_loop_would_call_it(tmp_path):
     assert [int(r["episode"]) for r in table] == [3, 6] and [int(r["env_steps"]) for r in table] == [300, 600]
     assert float(table[0]["survival_non_goal"]) == rows[2]["survival_non_goal"]
     assert ("eval/goal_random", rows[5]["goal_random"], 600) in logger.points
-    pe.rewind(4)
+    assert all(pe.after_steps(net, 6, f) is None for f in (700, 900))  # unit: episodes
+    pe.rewind(4, 450)
     with (tmp_path / PERIODIC_CSV).open() as f:
         assert [int(r["episode"]) for r in csv.DictReader(f)] == [3]
     off = PeriodicEvaluation(None, {}, tmp_path / "off")

@@ -282,6 +282,26 @@ def test_periodic_evaluation_rows_during_training(compose_cfg, tmp_path):
     assert 0 <= float(evals[0]["survival_random"]) <= 100
 
 
+def test_periodic_evaluation_by_env_steps_trains_the_same_weights(compose_cfg, tmp_path):
+    """``eval.unit=env_steps``: a row at the first step past each multiple of ``every``; the
+    weights and episodes equal those of a run without periodic evaluation, and a run resumes
+    under another schedule (``eval`` is a runtime key)."""
+    base = TINY + ["total_episodes=null", "total_frames=120", "env.num_envs=4", "eval.episodes=1"]
+    train(compose_cfg("train", base + ["eval.every=50", "eval.unit=env_steps"]), tmp_path / "on")
+    train(compose_cfg("train", base + ["eval.every=0"]), tmp_path / "off")
+    steps = [int(r["env_steps"]) for r in rows(tmp_path / "on" / "eval_periodic.csv")]
+    # 4 envs add 4 env steps per step, and a round is due every 4 (agent.train_every): the
+    # first multiple of 4 at or past 50, then 100 itself
+    assert steps == [52, 100]
+    a, b = (torch.load(tmp_path / n / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+            for n in ("on", "off"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert rows(tmp_path / "on" / "episodes.csv") == rows(tmp_path / "off" / "episodes.csv")
+    more = [o for o in base if not o.startswith("total_frames")] + [
+        "total_frames=160", "eval.every=1", f"resume={tmp_path / 'off'}"]
+    assert train(compose_cfg("train", more)).frames == 160
+
+
 def test_overlapped_collection_is_deterministic_and_keeps_the_schedule(compose_cfg, tmp_path):
     """Two overlapped runs are identical (the learner thread's loss must not switch the
     acting thread's exploration off), and every mode keeps the update schedule."""

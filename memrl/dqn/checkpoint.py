@@ -18,8 +18,9 @@ from memrl.data.recipe import LEGACY_RECIPE, used
 from memrl.errors import UserError
 
 RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
-                "checkpoint_every", "log_every", "hydra", "device")
-"""Config keys that may differ between a run and its resumption (outputs and budgets)."""
+                "checkpoint_every", "log_every", "hydra", "device", "eval")
+"""Config keys that may differ between a run and its resumption (outputs and budgets; the
+periodic evaluation ``eval`` leaves the training's RNG and weights as they are)."""
 
 
 LEGACY_VALUES: dict[str, Any] = {

@@ -135,6 +135,7 @@ class Trainer:
                 for part in steps.transitions:
                     self.stage.buffer.extend(part)
                 self._episodes_done(steps.episodes)
+                self.periodic.after_steps(self.learner.qnet, c.episodes, c.frames)
                 bar.update(len(steps.episodes) if self.budget.total_episodes is not None
                            else steps.frames)
                 if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
@@ -362,7 +363,7 @@ class Trainer:
         self._recent = deque(state["recent"], maxlen=20)
         ckpt.set_rng_state(state["rng"])
         self.records.rewind(self.counters.episodes, self.counters.update_rows)
-        self.periodic.rewind(self.counters.episodes)
+        self.periodic.rewind(self.counters.episodes, self.counters.frames)
         self.rounds.load_state_dict(state.get("rounds"))
         self._checkpointed_at = self.counters.episodes
         self.resumed_from = self.counters.episodes

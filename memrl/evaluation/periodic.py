@@ -91,11 +91,26 @@ class PeriodicEvaluation:
             raise ValueError(f"config 'eval': need every >= 0 and episodes >= 1, got {self.cfg}")
         self.env_cfg, self.logger, self.device = env_cfg, logger, device
         self.table = CsvTable(run_dir / PERIODIC_CSV, PERIODIC_FIELDS) if self.cfg.every else None
+        self._frames = 0  # env steps at the last after_steps call
 
     def after_episode(self, qnet: nn.Module, episodes: int, env_steps: int) -> dict[str, float] | None:
-        """Evaluate when ``episodes`` (done so far) is a multiple of ``every``; returns the row."""
-        if self.table is None or episodes % self.cfg.every:
+        """``unit: episodes``: evaluate when ``episodes`` (done so far) is a multiple of
+        ``every``; returns the row."""
+        if self.table is None or self.cfg.unit != "episodes" or episodes % self.cfg.every:
             return None
+        return self._evaluate(qnet, episodes, env_steps)
+
+    def after_steps(self, qnet: nn.Module, episodes: int, env_steps: int) -> dict[str, float] | None:
+        """``unit: env_steps``: evaluate when the steps since the last call crossed a multiple
+        of ``every``; returns the row."""
+        before, self._frames = self._frames, env_steps
+        if self.table is None or self.cfg.unit != "env_steps" \
+                or env_steps // self.cfg.every <= before // self.cfg.every:
+            return None
+        return self._evaluate(qnet, episodes, env_steps)
+
+    def _evaluate(self, qnet: nn.Module, episodes: int, env_steps: int) -> dict[str, float]:
+        assert self.table is not None
         metrics = periodic_eval(qnet, self.env_cfg, self.cfg.episodes, self.cfg.seed,
                                 initial_lanes=self.cfg.initial_lanes, batch=self.cfg.batch,
                                 device=self.device)
@@ -106,7 +121,11 @@ class PeriodicEvaluation:
                 self.logger.log_scalar(f"eval/{key}", float(value), step=env_steps)
         return metrics
 
-    def rewind(self, episodes: int) -> None:
-        """After a resume: keep the rows of evaluations made up to episode ``episodes``."""
+    def rewind(self, episodes: int, env_steps: int) -> None:
+        """After a resume from a checkpoint taken at ``episodes`` and ``env_steps``: keep the
+        rows of evaluations made up to it (a row made after it passed one of the two)."""
+        self._frames = env_steps
         if self.table is not None:
-            self.table.truncate(sum(int(r["episode"]) <= episodes for r in self.table.rows()))
+            rows = self.table.rows()
+            self.table.truncate(next((i for i, r in enumerate(rows) if int(r["episode"]) > episodes
+                                      or int(r["env_steps"]) > env_steps), len(rows)))
