@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from memrl.errors import ConfigError
 from memrl.studies.report import DATE_PREFIX, WALL_PREFIX
@@ -104,6 +105,25 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
         both.append(100 * sum(e["survived"] == "1" and e["goal"] == "1" for e in ng) / len(ng))
     row = f"| B stage 1 | 2 | {(both[0] + both[1]) / 2:.1f} | seed 0: {both[0]:.0f}, seed 1: {both[1]:.0f} |"
     assert row in md
+
+
+def test_the_report_says_how_each_stage_1_ended(first):
+    """One row per B run from its summary.json and config, by hand: the kept check's update,
+    its drives, held-out agreement and steering recall (none for Default runs)."""
+    _, result = first
+    md = result.report.read_text()
+    assert "## Mode B: how stage 1 ended" in md and "| Default_constant_s0 | " not in md.split(
+        "## Mode B: how stage 1 ended")[1].split("## ")[0]
+    for seed in (0, 1):
+        run = result.dir / "runs" / f"B_constant_s{seed}"
+        s1 = json.loads((run / "summary.json").read_text())["stage1"]
+        kept = s1["best_updates"] or s1["updates"]
+        i = [d["updates"] for d in s1["drives"]].index(kept) if s1["drives"] else len(s1["agreements"]) - 1
+        episodes = int(OmegaConf.load(run / "config.yaml").mode.stage1.drive_episodes)
+        drive = f"{s1['drives'][i]['both']} of {episodes}" if s1["drives"] else "\u2014"
+        row = (f"| B_constant_s{seed} | {s1['updates']:,} | {s1['stop_reason']} | {kept:,} | {drive} | "
+               f"{s1['agreements'][i]:.2f} | {s1['parts'][i]['steering_recall']:.2f} |")
+        assert row in md, row
 
 
 def test_stage1_weights_are_evaluated_from_the_loss_module(first):

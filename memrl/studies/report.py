@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from memrl.evaluation import stats, tables
 from memrl.evaluation.periodic import PERIODIC_CSV
@@ -167,6 +168,54 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
             cells = ["no periodic evaluation (train with eval.every > 0)", "", ""]
         lines.append(f"| {run.name} | {first_s} | " + " | ".join(cells) + f" | {fin} |")
     return lines + [""]
+
+
+def stage1_end(run: Path) -> dict[str, Any] | None:
+    """How a mode B run's stage 1 ended (its ``summary.json``): updates, stop reason, and at
+    the check whose weights stage 2 started from (the best drive, else the last check) its
+    update, drive counts, held-out agreement and steering recall. None without a stage 1."""
+    path = run / "summary.json"
+    try:
+        s1 = json.loads(path.read_text()).get("stage1") if path.is_file() else None
+    except (OSError, ValueError):
+        return None
+    if not isinstance(s1, dict) or not s1.get("agreements"):
+        return None
+    agreements, parts, drives = s1["agreements"], s1.get("parts") or [], s1.get("drives") or []
+    try:
+        episodes = int(OmegaConf.load(run / "config.yaml").mode.stage1.drive_episodes)
+    except Exception:  # noqa: BLE001 - a run without its config (moved, older) shows counts alone
+        episodes = 0
+    kept = int(s1.get("best_updates") or 0) or int(s1["updates"])
+    i = next((k for k, d in enumerate(drives) if d["updates"] == kept), len(agreements) - 1)
+    i = min(i, len(agreements) - 1)  # drives and checks are made together: one of each per check
+    return {"updates": int(s1["updates"]), "stop": str(s1.get("stop_reason", "")), "kept": kept,
+            "drive": drives[i] if i < len(drives) else None, "drive_episodes": episodes,
+            "agreement": float(agreements[i]),
+            "steering_recall": (parts[i].get("steering_recall") if i < len(parts) else None)}
+
+
+def stage1_end_section(runs: Sequence[Path]) -> list[str]:
+    """``## Mode B: how stage 1 ended``, one row per run that has a stage 1: :func:`stage1_end`."""
+    lines = []
+    for run in runs:
+        end = stage1_end(run)
+        if end is None:
+            continue
+        drive, n = end["drive"], end["drive_episodes"]
+        both = "\u2014" if not drive else f"{drive['both']} of {n}" if n else str(drive["both"])
+        recall = "\u2014" if end["steering_recall"] is None else f"{end['steering_recall']:.2f}"
+        lines.append(f"| {run.name} | {end['updates']:,} | {end['stop']} | {end['kept']:,} | {both} | "
+                     f"{end['agreement']:.2f} | {recall} |")
+    if not lines:
+        return []
+    return ["## Mode B: how stage 1 ended", "",
+            "From each run's `summary.json`. Stage 2 started from the weights checked at the "
+            "update given (the check that drove best, else the last); at that check: the drives "
+            "(scenes of their own) that survived and reached the target, the greedy action's "
+            "agreement with the held-out demos, and its recall of their steering actions.", "",
+            "| run | updates | stop | weights of update | drives: survived and reached | "
+            "held-out agreement | steering recall |", "|---|---|---|---|---|---|---|", *lines, ""]
 
 
 def both_section(groups: Sequence[Sequence[EvalResult]], cfg: stats.StatsConfig) -> list[str]:
@@ -326,6 +375,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
     lines += ["## Table III: survival and goal scores (per 100 episodes)", "",
               tables.side_by_side(rows, inputs.stats.confidence), *comparisons(inputs, results),
               *stage1_section(inputs),
+              *stage1_end_section([Path(str(r.meta["run"])) for r in inputs.runs if r.meta.get("run")]),
               *both_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *training_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
