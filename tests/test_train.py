@@ -161,6 +161,33 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_pat
     assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
 
 
+def test_mode_b_on_n_envs_killed_in_stage_1_resumes_exactly(compose_cfg, tmp_path, demos,
+                                                            monkeypatch):
+    """A checkpoint made in stage 1 holds no collector state (its envs have not started): with
+    N > 1 envs the resumed run starts stage 2 on fresh envs, as the uninterrupted run does."""
+    cfg = compose_cfg("train", TINY + ["+mode=B", "env.num_envs=2", "total_episodes=null",
+                                       "total_frames=48", "mode.stage1.criterion=max_updates"])
+    full = train(cfg, tmp_path / "full", demos=demos)
+    original = Trainer.save_checkpoint
+
+    def dying(self):
+        original(self)
+        if self.counters.stage == "B1" and self.stage1.updates == 8:
+            raise Killed("simulated kill")
+
+    monkeypatch.setattr(Trainer, "save_checkpoint", dying)
+    with pytest.raises(Killed):
+        train(cfg, tmp_path / "cut", demos=demos)
+    monkeypatch.setattr(Trainer, "save_checkpoint", original)
+    resumed = train(compose_cfg("train", TINY + [
+        "+mode=B", "env.num_envs=2", "total_episodes=null", "total_frames=48",
+        "mode.stage1.criterion=max_updates", f"resume={tmp_path / 'cut'}"]), demos=demos)
+    assert resumed.stage1["updates"] == full.stage1["updates"] == 12
+    assert (resumed.frames, resumed.episodes, resumed.updates) == (full.frames, full.episodes, full.updates)
+    assert rows(tmp_path / "cut" / "episodes.csv") == rows(tmp_path / "full" / "episodes.csv")
+    assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
+
+
 def test_resume_refuses_a_checkpoint_from_another_config(compose_cfg, tmp_path):
     cfg = compose_cfg("train", TINY + ["total_episodes=1"])
     train(cfg, tmp_path)

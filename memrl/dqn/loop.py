@@ -356,9 +356,11 @@ class Trainer:
                 raise ckpt.CheckpointError(f"{where / 'buffer'}: unreadable replay buffer "
                                            f"({type(err).__name__}: {err})") from err
         self.self_play.restore(self.counters.episodes)  # before the engine: its pool size
-        collector = state.get("collector") or {"started": self.counters.episodes,  # older format
-                                               "pending": torch.ones(self.num_envs, dtype=torch.bool)}
-        self.collector.load_state_dict(collector)
+        if state.get("collector") is not None:  # None: made in stage 1, the collector not started yet
+            self.collector.load_state_dict(state["collector"])
+        elif self.counters.stage != "B1":  # older format: single-env runs saved between episodes
+            self.collector.load_state_dict({"started": self.counters.episodes,
+                                            "pending": torch.ones(self.num_envs, dtype=torch.bool)})
         self._acc = state["acc"]
         self._recent = deque(state["recent"], maxlen=20)
         ckpt.set_rng_state(state["rng"])
