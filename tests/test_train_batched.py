@@ -68,7 +68,7 @@ class Killed(RuntimeError):
     pass
 
 
-@pytest.mark.parametrize(("mode", "overlap"), [(None, True), (None, False), ("A", True)])
+@pytest.mark.parametrize(("mode", "overlap"), [(None, True), (None, False), ("A", True), ("B", True)])
 def test_killed_and_resumed_run_on_four_envs_equals_an_uninterrupted_one(
         compose_cfg, tmp_path, demos, monkeypatch, mode, overlap):
     extra = N4 + ["total_episodes=12", "checkpoint_every=3", f"agent.overlap={overlap}"] + (
