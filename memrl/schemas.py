@@ -550,6 +550,10 @@ class StudyConfig:
     are kept)."""
     progress: bool = True
     """Progress bars of the evaluations."""
+    status: bool = False
+    """Only print where each run stands (finished, running, resumable, not started; env steps,
+    updates, the checkpoint a resume continues from, evaluated or not): nothing is trained,
+    evaluated or reported."""
 
 
 @dataclass

@@ -208,8 +208,29 @@ def study(cfg: DictConfig) -> StudyResult:
     return result
 
 
+def study_status(cfg: DictConfig) -> list[str]:
+    """``study.status=true``: where each run of the grid stands (:mod:`memrl.studies.status`)."""
+    from memrl.studies.grid import cells
+    from memrl.studies.status import status_table
+
+    check_study(cfg)
+    folder = Path(str(cfg.study.dir))
+    lines = [f"study {cfg.study.name} ({folder})"]
+    record = folder / STUDY_JSON
+    made = json.loads(record.read_text()).get("train_overrides") if record.is_file() else None
+    if made is not None and made != [str(o) for o in cfg.study.train_overrides]:
+        lines.append(f"(the study was made with study.train_overrides={made}; the budgets below "
+                     "are this call's)")
+    return lines + status_table(cells(cfg.study, folder / "runs"))
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="study")
 def main(cfg: DictConfig) -> None:
+    if cfg.study.status:
+        lines = run_task(study_status, cfg)
+        if lines is not None:
+            print("\n".join(lines))
+        return
     result = run_task(study, cfg)
     if result is not None and result.failed:
         print(f"study: {len(result.failed)} runs failed: " + "; ".join(

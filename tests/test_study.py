@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -157,15 +158,40 @@ def test_running_it_again_retrains_nothing_and_writes_the_same_report(first):
 
 
 def test_a_killed_run_resumes_and_only_it(first):
-    from memrl.study import study
+    """study.status says where each run stands; the study then trains just what is left."""
+    from memrl.study import study, study_status
 
     cfg, result = first
     run = result.dir / "runs" / "B_constant_s1"
     (run / "summary.json").unlink()  # as if killed after its last checkpoint
     (run / "checkpoints" / "final.pt").unlink()
+    (result.dir / "runs" / "Default_constant_s1" / "eval" / "eval.json").unlink()
+    shutil.rmtree(result.dir / "runs" / "Default_constant_s0")  # as if never started
+    lines = study_status(cfg)  # reads the folder, changes nothing
+    assert lines[1] == "2 finished, 1 resumable, 1 not started of 4 runs; 2 evaluated"
+    state = torch.load(run / "checkpoints" / "last" / "state.pt", weights_only=False)["counters"]
+    with (run / "updates.csv").open() as f:
+        last = list(csv.DictReader(f))[-1]
+    assert (f"| B_constant_s1 | resumable | {last['stage']} | {int(last['env_steps']):,} | "
+            f"{int(last['updates']):,} | 64 env steps | B2: {state['frames']:,} env steps, "
+            f"{state['updates']:,} updates | yes |") in lines
+    assert "| Default_constant_s0 | not started |  |  |  | 64 env steps |  | no |" in lines
+    from memrl.run_lock import run_lock
+
+    with run_lock(run):  # as a process training it holds it
+        assert "| B_constant_s1 | running | " in "\n".join(study_status(cfg))
+    done = json.loads((result.dir / "runs" / "Default_constant_s1" / "summary.json").read_text())
+    assert (f"| Default_constant_s1 | finished | default | {done['frames']:,} | {done['updates']:,} | "
+            "64 env steps |  | no |") in lines
+    assert not (run / "summary.json").exists() and not (result.dir / "runs" / "Default_constant_s0").exists()
     again = study(cfg)
-    assert again.resumed == ["B_constant_s1"] and again.trained == [] and len(again.skipped) == 3
-    assert again.evaluated == [str(run / "eval")]  # its stage-1 weights did not change
+    assert again.resumed == ["B_constant_s1"] and again.trained == ["Default_constant_s0"]
+    assert len(again.skipped) == 2
+    # the resumed run's evaluation (its stage-1 weights did not change), the new run's and
+    # its stage 1's, and the one removed
+    assert sorted(again.evaluated) == sorted([
+        str(run / "eval"), str(result.dir / "runs" / "Default_constant_s0" / "eval"),
+        str(result.dir / "runs" / "Default_constant_s1" / "eval")])
     assert (run / "summary.json").is_file() and "| B | 2 |" in again.report.read_text()
 
 
