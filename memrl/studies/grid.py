@@ -23,6 +23,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl.workers import die_with_parent
+
 log = logging.getLogger(__name__)
 
 CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
@@ -198,7 +200,8 @@ def run_cells(grid: Sequence[Cell], jobs: int,
             done(cell, resume, error)
         return out
     # spawn: a fresh interpreter per worker (no forked torch / OpenMP state)
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
+                             initializer=die_with_parent) as pool:
         futures: list[tuple[Cell, bool, Future]] = [
             (cell, resume, pool.submit(trainer, cell.cfg, str(cell.run_dir), resume))  # type: ignore[arg-type]
             for cell, resume in todo]

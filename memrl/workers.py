@@ -1,0 +1,34 @@
+"""Worker processes that end with the process that started them.
+
+``ProcessPoolExecutor`` workers outlive a parent killed with SIGTERM or SIGKILL: they finish
+the task they hold (a whole training run of a study) and only then notice. A study stopped
+with ``kill <pid>`` kept training in the background, holding the run's lock, so that the next
+call of the same command found the run busy. Hand-written because neither
+``concurrent.futures`` nor ``multiprocessing`` offers it: Linux's ``PR_SET_PDEATHSIG``.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+
+PR_SET_PDEATHSIG = 1
+"""``prctl`` option: the signal this process gets when its parent ends (linux/prctl.h)."""
+
+
+def die_with_parent() -> None:
+    """Pool initializer: SIGTERM this worker when its parent ends (Linux; elsewhere nothing).
+    A run it was training stays resumable from its last checkpoint."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    except (OSError, AttributeError):  # no prctl (another libc): keep the old behaviour
+        return
+    if os.getppid() != parent:  # the parent ended before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
