@@ -210,6 +210,23 @@ def test_a_default_run_resumes_whatever_the_mode_keys_it_never_reads(compose_cfg
     assert diff == ["mode.demo_fraction: 0.1 (checkpoint) vs 0.3 (now)"]
 
 
+@pytest.mark.parametrize(("mode", "unread", "read"), [
+    ("A", ["mode.stage1.max_updates=7", "mode.stage1.lr=0.01", "mode.stage2.demo_fraction=0.2",
+           "mode.stage2.eps_start=0.5"], "mode.stage1.margin=0.5"),
+    ("B", ["mode.demo_fraction=0.3", "mode.margin_weight=2"], "mode.stage1.max_updates=7"),
+])
+def test_a_prior_knowledge_run_ignores_the_other_modes_keys(compose_cfg, mode, unread, read):
+    """Mode A reads no stage key but the margin of its margin loss; mode B not A's two keys:
+    changing those keeps the config the same for resuming and for report rows."""
+    base = TINY + ["total_episodes=1", f"+mode={mode}"]
+    same = [compose_cfg("train", base + extra) for extra in ([], unread)]
+    used = [ckpt.used(ckpt.comparable(c)) for c in same]
+    assert ckpt.config_diff(*used) == []
+    key, value = read.split("=")
+    other = ckpt.used(ckpt.comparable(compose_cfg("train", base + [read])))
+    assert [d.split(":")[0] for d in ckpt.config_diff(used[0], other)] == [key]
+
+
 def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(compose_cfg,
                                                                             tmp_path):
     """A checkpoint whose config predates agent.precision/agent.overlap: resuming it with the

@@ -101,10 +101,12 @@ class Stage1Config:
 
     The defaults are those with which stage 1 learned the lane change from the default prior
     knowledge (README, "Stage 1 on its own" and "Presets"): its own Adam at 1e-3, DQfD's margin
-    loss at weight 3, and every 1,000 updates 40 greedy drives that stop it at 75% and keep the
-    best weights. ``+experiment=paper``: eq. (1) alone."""
+    loss at weight 3, and every 1,000 updates 40 greedy drives that stop it at 35 of them (else
+    at 30,000 updates) and keep the best weights: 78% of non-goal test episodes survived and
+    reached the target, 3 seeds (docs/results/issue20, section 6; stopping at 75% within 20,000
+    updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
 
-    max_updates: int = 20_000
+    max_updates: int = 30_000
     """Hard cap on stage-1 updates."""
     check_every: int = 1000
     """Updates between convergence checks."""
@@ -124,8 +126,9 @@ class Stage1Config:
     scenes of their own seed domain (not the test scenes). Needed by ``behaviour``."""
     drive_seed: int = 0
     """Base of the drive episodes' scene seeds."""
-    drive_target: float = 0.75
-    """``behaviour``: share of drive episodes that must both survive and reach the target."""
+    drive_target: float = 0.875
+    """``behaviour``: share of drive episodes that must both survive and reach the target (35 of
+    40: the drives still rose past 30 of 40, the earlier target 0.75)."""
     keep_best: bool = True
     """With drive episodes: stage 2 (and ``stage1.pt``) start from the checked weights that
     drove best (most episodes surviving and reaching; ties: the later), not the last ones.
