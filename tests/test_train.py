@@ -333,6 +333,12 @@ def test_periodic_evaluation_by_env_steps_trains_the_same_weights(compose_cfg, t
     base = TINY + ["total_episodes=null", "total_frames=120", "env.num_envs=4", "eval.episodes=1"]
     train(compose_cfg("train", base + ["eval.every=50", "eval.unit=env_steps"]), tmp_path / "on")
     train(compose_cfg("train", base + ["eval.every=0"]), tmp_path / "off")
+    # a checkpoint from before eval was a runtime key stored it: not compared either
+    state_file = tmp_path / "off" / "checkpoints" / "last" / "state.pt"
+    state = torch.load(state_file, weights_only=False)
+    state["config"]["eval"] = {"every": 100, "episodes": 10}
+    torch.save(state, state_file)
+    (state_file.parent / ckpt.MANIFEST).unlink()
     steps = [int(r["env_steps"]) for r in rows(tmp_path / "on" / "eval_periodic.csv")]
     # 4 envs add 4 env steps per step, and a round is due every 4 (agent.train_every): the
     # first multiple of 4 at or past 50, then 100 itself

@@ -187,7 +187,9 @@ def load_state(ckpt: Path, cfg: DictConfig | None = None) -> dict[str, Any]:
     except Exception as err:  # torch raises several types for a truncated or foreign file
         raise CheckpointError(f"{ckpt / 'state.pt'}: unreadable checkpoint ({err})") from err
     if cfg is not None:
-        diff = config_diff(used(with_legacy_values(state["config"])), used(comparable(cfg)))
+        # runtime keys of today that older checkpoints stored (eval) are not compared either
+        stored = {k: v for k, v in state["config"].items() if k not in RUNTIME_KEYS}
+        diff = config_diff(used(with_legacy_values(stored)), used(comparable(cfg)))
         if diff:
             raise CheckpointError(f"{ckpt}: checkpoint made under another config (resume with "
                                   "the checkpoint's values as overrides):\n  " + "\n  ".join(diff))
