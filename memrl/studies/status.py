@@ -1,5 +1,6 @@
 """``study.status=true``: where each run of a study stands, read from its folder; nothing is
-trained, evaluated or written.
+trained, evaluated or reported (Hydra records the call in
+``.hydra/`` and ``study.log``, as for every call).
 
 Per run: its state (finished, running now, resumable from a checkpoint, not started), its
 stage, env steps against the budget and updates (the last ``updates.csv`` row: live for a run
