@@ -32,3 +32,17 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         yield
     finally:
         lock.release()
+
+
+def held_elsewhere(run_dir: Path) -> bool:
+    """Another process holds the run folder's lock (training or resuming it). A free lock is
+    taken and released at once (a start in that instant is refused; the next call resumes)."""
+    if not (run_dir / LOCK_NAME).is_file():
+        return False
+    lock = FileLock(run_dir / LOCK_NAME, timeout=0)
+    try:
+        lock.acquire()
+    except Timeout:
+        return True
+    lock.release()
+    return False

@@ -23,8 +23,10 @@ def die_with_parent() -> None:
     if not sys.platform.startswith("linux"):
         return
     import ctypes
+    import multiprocessing
 
-    parent = os.getppid()
+    known = multiprocessing.parent_process()  # the pool's process, even if it has ended already
+    parent = known.pid if known is not None else os.getppid()
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)

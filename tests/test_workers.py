@@ -47,6 +47,7 @@ def _worker_after_parent_killed(tmp_path: Path, initializer: str) -> bool:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     parent = subprocess.Popen([sys.executable, str(script), initializer], stdout=subprocess.PIPE,
                               text=True, env=env)
+    worker = None
     try:
         assert parent.stdout is not None
         worker = int(parent.stdout.readline())
@@ -59,7 +60,7 @@ def _worker_after_parent_killed(tmp_path: Path, initializer: str) -> bool:
         return True
     finally:
         parent.kill()
-        if "worker" in locals() and _alive(worker):
+        if worker is not None and _alive(worker):
             os.kill(worker, signal.SIGKILL)
 
 

@@ -7,6 +7,7 @@ import json
 import random
 import shutil
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -85,7 +86,12 @@ def comparable(cfg: DictConfig) -> dict[str, Any]:
     """The part of a config that must match for a checkpoint to be resumed."""
     data = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(data, dict)
-    return {str(k): v for k, v in data.items() if k not in RUNTIME_KEYS}
+    return without_runtime_keys(data)
+
+
+def without_runtime_keys(config: Mapping[Any, Any]) -> dict[str, Any]:
+    """``config`` without :data:`RUNTIME_KEYS` (also those an older checkpoint stored: eval)."""
+    return {str(k): v for k, v in config.items() if k not in RUNTIME_KEYS}
 
 
 def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
@@ -187,8 +193,7 @@ def load_state(ckpt: Path, cfg: DictConfig | None = None) -> dict[str, Any]:
     except Exception as err:  # torch raises several types for a truncated or foreign file
         raise CheckpointError(f"{ckpt / 'state.pt'}: unreadable checkpoint ({err})") from err
     if cfg is not None:
-        # runtime keys of today that older checkpoints stored (eval) are not compared either
-        stored = {k: v for k, v in state["config"].items() if k not in RUNTIME_KEYS}
+        stored = without_runtime_keys(state["config"])
         diff = config_diff(used(with_legacy_values(stored)), used(comparable(cfg)))
         if diff:
             raise CheckpointError(f"{ckpt}: checkpoint made under another config (resume with "

@@ -16,9 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from filelock import FileLock, Timeout
-
-from memrl.run_lock import LOCK_NAME
+from memrl.run_lock import held_elsewhere
 from memrl.studies.grid import Cell
 
 
@@ -35,20 +33,6 @@ class RunStatus:
     checkpoint: str = ""
     """Where a resume continues from: stage, env steps and updates of ``checkpoints/last``."""
     evaluated: bool = False
-
-
-def _locked(run: Path) -> bool:
-    """Another process holds the run's lock (training or resuming it). The lock is taken and
-    released at once when free (a start in that instant is refused, and the next call resumes)."""
-    if not (run / LOCK_NAME).is_file():
-        return False
-    lock = FileLock(run / LOCK_NAME, timeout=0)
-    try:
-        lock.acquire()
-    except Timeout:
-        return True
-    lock.release()
-    return False
 
 
 def _last_row(path: Path) -> dict[str, str] | None:
@@ -85,7 +69,7 @@ def run_status(cell: Cell) -> RunStatus:
         return RunStatus(cell.name, "not started")
     row = _last_row(run / "updates.csv")
     checkpoint = _checkpoint(run)
-    state = "running" if _locked(run) else "resumable" if cell.resumable() else "started"
+    state = "running" if held_elsewhere(run) else "resumable" if cell.resumable() else "started"
     return RunStatus(cell.name, state, row["stage"] if row else "",
                      int(row["env_steps"]) if row else None, int(row["updates"]) if row else None,
                      checkpoint, evaluated)
