@@ -82,6 +82,9 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
     for text in ("| B | 2 |", "| Default | 2 |", "B \u2212 Default", "P(B > Default)", "| B stage 1 |",
                  "B_constant_s1", "machine:", "budget per run: total_frames=64", result.command):
         assert text in md, text
+    walls = [json.loads((folder / "runs" / r / "summary.json").read_text())["train_wall_s"]
+             for r in result.trained]
+    assert f"- total: training {sum(walls):,.0f} s (sum over runs), evaluation " in md
     assert (folder / "fig5.png").is_file() and (folder / "study.json").is_file()
     assert (folder / "fig_stage2.png").is_file() and (folder / "fig7_B.png").is_file()
     assert "![fig_stage2](fig_stage2.png)" in md
@@ -193,6 +196,18 @@ def test_a_killed_run_resumes_and_only_it(first):
         str(run / "eval"), str(result.dir / "runs" / "Default_constant_s0" / "eval"),
         str(result.dir / "runs" / "Default_constant_s1" / "eval")])
     assert (run / "summary.json").is_file() and "| B | 2 |" in again.report.read_text()
+    resumed = json.loads((run / "summary.json").read_text())  # both calls' training time
+    assert resumed["train_wall_s"] > resumed["wall_s"] > 0
+
+
+def test_a_runs_training_time_counts_every_call_or_is_said_to_be_unknown():
+    from memrl.studies.report import train_wall
+
+    assert train_wall({"wall_s": 5.0, "train_wall_s": 12.5, "resumed_from_episode": 4}) == 12.5
+    assert train_wall({"wall_s": 5.0, "resumed_from_episode": None}) == 5.0  # one call: all of it
+    # resumed from a checkpoint that did not record the earlier calls' time
+    assert train_wall({"wall_s": 5.0, "resumed_from_episode": 4}) is None
+    assert train_wall({"wall_s": 5.0, "train_wall_s": None, "resumed_from_episode": 4}) is None
 
 
 def test_changing_the_train_overrides_of_a_study_is_refused(tmp_path, compose_cfg):

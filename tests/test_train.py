@@ -146,10 +146,14 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_pat
         train(cfg, tmp_path / "cut", demos=demos)
     monkeypatch.setattr(Trainer, "_episodes_done", original)
     assert len(rows(tmp_path / "cut" / "episodes.csv")) == 5
+    before = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")["wall_s"]
     resumed_cfg = compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"])
     resumed = train(resumed_cfg, demos=demos)
 
     assert resumed.resumed_from_episode == 4
+    # the run's training time: the killed call's up to its checkpoint, then this call's
+    assert before > 0 and resumed.train_wall_s == before + resumed.wall_s
+    assert full.train_wall_s == full.wall_s
     for key in ("frames", "episodes", "updates", "stage"):
         assert getattr(resumed, key) == getattr(full, key), key
     assert rows(tmp_path / "cut" / "episodes.csv") == rows(tmp_path / "full" / "episodes.csv")
@@ -204,6 +208,7 @@ def test_a_default_run_resumes_whatever_the_mode_keys_it_never_reads(compose_cfg
               "mode.margin_weight=2", "mode.example.episodes=7"]
     resumed = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}", *unread]))
     assert resumed.resumed_from_episode == 1 and resumed.episodes == 2
+    assert resumed.train_wall_s is None  # the earlier call's time is unknown, not 0
     cfg = compose_cfg("train", TINY + ["total_episodes=1", "+mode=A"])
     other = compose_cfg("train", TINY + ["total_episodes=1", "+mode=A", "mode.demo_fraction=0.3"])
     diff = ckpt.config_diff(ckpt.used(ckpt.comparable(cfg)), ckpt.used(ckpt.comparable(other)))
@@ -240,6 +245,7 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
         del state["config"]["agent"][key]
     del state["config"]["env"]["bev"]["path_length"]
     del state["config"]["mode"]["stage1"]["lr"]
+    del state["wall_s"]  # and the record of the run's training time
     torch.save(state, state_file)
     (state_file.parent / ckpt.MANIFEST).unlink()  # such checkpoints predate the manifest too
     with pytest.raises(ckpt.CheckpointError, match="agent.overlap") as err:

@@ -99,7 +99,6 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
                 if recipe else ensure_example_demos(env_cfg, data, cfg.mode.example)
             demos = load_demos(source, env_cfg=env_cfg).to_tensordict()
             trainer = Trainer(cfg, Path(tmp) / "run", demos)
-            trainer._t_start, trainer._frames0, trainer._updates0 = time.perf_counter(), 0, 0
             curve = _DriveCurve(trainer, env_cfg, episodes, drive_every, updates)
             start = time.perf_counter()
             trainer.run_stage1(curve)

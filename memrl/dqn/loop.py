@@ -76,6 +76,7 @@ class Summary:
     reached_target_last_20: float
     stage1: dict[str, Any]
     wall_s: float
+    """Wall time of this call (the rates below are over it)."""
     updates_per_s: float
     frames_per_s: float
     learner_busy: float
@@ -83,6 +84,9 @@ class Summary:
     resumed_from_episode: int | None
     num_envs: int = 1
     device: str = "cpu"
+    train_wall_s: float | None = None
+    """Wall time of the whole run over all its calls: each killed call counts up to its last
+    checkpoint. None when it resumed from a checkpoint made before this was recorded."""
 
 
 class Trainer:
@@ -119,6 +123,8 @@ class Trainer:
         self._losses: deque[float] = deque(maxlen=100_000)
         self._checkpointed_at = 0  # episodes at the last checkpoint
         self.resumed_from: int | None = None
+        self._wall_before: float | None = 0.0  # training seconds of earlier calls (None: unknown)
+        self._start_clock()  # run() starts it again; stage 1 alone (bench, tests) counts from here
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> Summary:
@@ -303,6 +309,12 @@ class Trainer:
         self._frames0, self._updates0 = self.counters.frames, self.counters.updates
         self.rounds.update_seconds = 0.0
 
+    def _trained_s(self) -> float | None:
+        """Training seconds of the run so far, over all its calls."""
+        if self._wall_before is None:
+            return None
+        return self._wall_before + time.perf_counter() - self._t_start
+
     def _progress_bar(self) -> tqdm:
         cfg, c = self.cfg, self.counters
         by_episodes = cfg.total_episodes is not None
@@ -326,6 +338,7 @@ class Trainer:
             "recent": list(self._recent),
             "rng": ckpt.rng_state(),
             "stage1_best": self.stage1_checks.best if self.stage1_checks is not None else None,
+            "wall_s": self._trained_s(),
         }
         agent_part = getattr(self.stage.buffer, "online_buffer", self.stage.buffer)  # not the demos
         agent_data = online and len(agent_part) > 0
@@ -369,6 +382,7 @@ class Trainer:
         self.rounds.load_state_dict(state.get("rounds"))
         self._checkpointed_at = self.counters.episodes
         self.resumed_from = self.counters.episodes
+        self._wall_before = state.get("wall_s")  # absent from older checkpoints: unknown
         log.info("resumed %s at stage %s: %d episodes, %d frames, %d updates", where,
                  self.counters.stage, self.counters.episodes, self.counters.frames,
                  self.counters.updates)
@@ -391,7 +405,8 @@ class Trainer:
             frames_per_s=(c.frames - self._frames0) / max(wall, 1e-9),
             learner_busy=self.rounds.update_seconds / max(wall, 1e-9),
             resumed_from_episode=self.resumed_from, num_envs=self.num_envs,
-            device=str(self.device))
+            device=str(self.device),
+            train_wall_s=None if self._wall_before is None else self._wall_before + wall)
         env_cfg = OmegaConf.to_container(self.cfg.env, resolve=True)
         save_qnet(self.out_dir / "checkpoints" / "final.pt", self.learner.qnet,
                   env_cfg, {"summary": dataclasses.asdict(summary)})  # type: ignore[arg-type]

@@ -84,6 +84,20 @@ def _summary(cell: Cell) -> dict[str, Any]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
+def train_wall(summary: dict[str, Any]) -> float | None:
+    """A run's training wall time over all its calls (``train_wall_s``; a run that never
+    resumed: ``wall_s``); None when unknown (resumed from a checkpoint that did not record it)."""
+    if summary.get("train_wall_s") is not None:
+        return float(summary["train_wall_s"])
+    if summary.get("resumed_from_episode") is None and "wall_s" in summary:
+        return float(summary["wall_s"])
+    return None
+
+
+def _unknown(count: int) -> str:
+    return f" ({count} resumed from checkpoints that did not record it: not counted)" if count else ""
+
+
 def _yaml(value: Any) -> str:
     return "null" if value is None else str(value)
 
@@ -106,9 +120,12 @@ def budget(cells: Sequence[Cell], finished: Sequence[Cell]) -> list[str]:
     def span(key: str, unit: str = "") -> str:
         return _span([s[key] for s in sums], unit)
 
+    walls = [train_wall(s) for s in sums]
+    known = [w for w in walls if w is not None]
     lines = [f"- budget per run: {'; '.join(set_)}",
              f"- measured per run ({len(sums)} runs): env steps {span('frames')}, episodes "
-             f"{span('episodes')}, updates {span('updates')}, training wall {span('wall_s', ' s')}"]
+             f"{span('episodes')}, updates {span('updates')}, training wall {_span(known, ' s')}"
+             f"{_unknown(len(walls) - len(known))}"]
     s1 = [s["stage1"]["updates"] for s in sums if s.get("mode") == "B" and s.get("stage1")]
     if s1:
         lines.append(f"- mode B stage 1: {_span(s1)} updates on the prior knowledge (no env steps)")
@@ -350,7 +367,8 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
             ("traffic", [c.opponent for c in inputs.cells]), ("seeds", [str(c.seed) for c in inputs.cells])]
     grid = " \u00d7 ".join(f"{axis} {', '.join(dict.fromkeys(values))}" for axis, values in axes if values)
     evals = sum(r.wall_s for r in [*results, *inputs.stage1])
-    train_wall = sum(float(_summary(c).get("wall_s", 0.0)) for c in inputs.finished)
+    walls = [train_wall(_summary(c)) for c in inputs.finished]
+    train_wall_s = sum(w for w in walls if w is not None)
     lines = [f"# Study {inputs.name}: Table III from trained agents", "",
              f"- command: `{inputs.command}`",
              f"- grid: {grid} ({len(inputs.finished)} of {len(inputs.cells)} runs finished); baselines: "
@@ -362,7 +380,8 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
              f"{p['vehicles_count'][0]}\u2013{p['vehicles_count'][1]} other cars, {p['duration']} steps, "
              f"scene seed {p['seed']}",
              f"- machine: {machine(inputs.cells)}",
-             f"- total: training {train_wall:,.0f} s (sum over runs), evaluation {evals:,.0f} s",
+             f"- total: training {train_wall_s:,.0f} s (sum over runs){_unknown(walls.count(None))}, "
+             f"evaluation {evals:,.0f} s",
              f"{WALL_PREFIX} {inputs.wall_s:,.0f} s for this call",
              f"{DATE_PREFIX} {time.strftime('%Y-%m-%d %H:%M:%S %Z')}", ""]
     if inputs.failed:
