@@ -550,6 +550,9 @@ class StudyConfig:
     are kept)."""
     progress: bool = True
     """Progress bars of the evaluations."""
+    train: bool = True
+    """False: train nothing; evaluate and report the runs finished so far (an interim report
+    of a study that trains in another process; the others are listed as not finished)."""
     status: bool = False
     """Only print where each run stands (finished, running, resumable, not started; env steps,
     updates, the checkpoint a resume continues from, evaluated or not): nothing is trained,

@@ -156,7 +156,7 @@ def study(cfg: DictConfig) -> StudyResult:
     from memrl.report import report, stats_config
     from memrl.schemas import check_train
     from memrl.studies import evaluation as ev
-    from memrl.studies.grid import cells, run_cells
+    from memrl.studies.grid import Outcome, cells, run_cells
     from memrl.studies.report import ReportInputs, stage_figure, write_report
 
     start = time.perf_counter()
@@ -168,7 +168,8 @@ def study(cfg: DictConfig) -> StudyResult:
         assert cell.cfg is not None
         check_train(cell.cfg)
     check_record(folder, cfg)
-    outcome = run_cells(grid, int(s.jobs))
+    outcome = run_cells(grid, int(s.jobs)) if s.train else \
+        Outcome(skipped=[c.name for c in grid if c.finished()])
     finished = [c for c in grid if c.finished()]
 
     settings = ev.EvalSettings(check_protocol(cfg.protocol), int(s.workers), int(s.batch), bool(s.progress))

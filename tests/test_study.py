@@ -187,14 +187,23 @@ def test_a_killed_run_resumes_and_only_it(first):
     assert (f"| Default_constant_s1 | finished | default | {done['frames']:,} | {done['updates']:,} | "
             "64 env steps |  | no |") in lines
     assert not (run / "summary.json").exists() and not (result.dir / "runs" / "Default_constant_s0").exists()
+    # an interim report (study.train=false): the finished runs only, nothing trained
+    interim_cfg = cfg.copy()
+    interim_cfg.study.train = False
+    interim = study(interim_cfg)
+    assert interim.trained == interim.resumed == [] and interim.failed == {}
+    assert sorted(interim.skipped) == ["B_constant_s0", "Default_constant_s1"]
+    assert interim.evaluated == [str(result.dir / "runs" / "Default_constant_s1" / "eval")]
+    md = interim.report.read_text()
+    assert "(2 of 4 runs finished)" in md and "Not finished: Default_constant_s0, B_constant_s1." in md
+    assert "| B | 1 |" in md and "| Default | 1 |" in md
+    assert not (run / "summary.json").exists() and not (result.dir / "runs" / "Default_constant_s0").exists()
     again = study(cfg)
     assert again.resumed == ["B_constant_s1"] and again.trained == ["Default_constant_s0"]
     assert len(again.skipped) == 2
-    # the resumed run's evaluation (its stage-1 weights did not change), the new run's and
-    # its stage 1's, and the one removed
+    # the resumed run's evaluation (its stage-1 weights did not change) and the new run's
     assert sorted(again.evaluated) == sorted([
-        str(run / "eval"), str(result.dir / "runs" / "Default_constant_s0" / "eval"),
-        str(result.dir / "runs" / "Default_constant_s1" / "eval")])
+        str(run / "eval"), str(result.dir / "runs" / "Default_constant_s0" / "eval")])
     assert (run / "summary.json").is_file() and "| B | 2 |" in again.report.read_text()
     resumed = json.loads((run / "summary.json").read_text())  # both calls' training time
     assert resumed["train_wall_s"] > resumed["wall_s"] > 0
