@@ -84,7 +84,7 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
         assert text in md, text
     walls = [json.loads((folder / "runs" / r / "summary.json").read_text())["train_wall_s"]
              for r in result.trained]
-    assert f"- total: training {sum(walls):,.0f} s (sum over runs), evaluation " in md
+    assert f"- total: training {sum(walls):,.0f} s (sum over 4 runs), evaluation " in md
     assert (folder / "fig5.png").is_file() and (folder / "study.json").is_file()
     assert (folder / "fig_stage2.png").is_file() and (folder / "fig7_B.png").is_file()
     assert "![fig_stage2](fig_stage2.png)" in md
@@ -210,13 +210,16 @@ def test_a_killed_run_resumes_and_only_it(first):
 
 
 def test_a_runs_training_time_counts_every_call_or_is_said_to_be_unknown():
-    from memrl.studies.report import train_wall
+    from memrl.studies.report import train_wall, training_total
 
     assert train_wall({"wall_s": 5.0, "train_wall_s": 12.5, "resumed_from_episode": 4}) == 12.5
     assert train_wall({"wall_s": 5.0, "resumed_from_episode": None}) == 5.0  # one call: all of it
     # resumed from a checkpoint that did not record the earlier calls' time
     assert train_wall({"wall_s": 5.0, "resumed_from_episode": 4}) is None
     assert train_wall({"wall_s": 5.0, "train_wall_s": None, "resumed_from_episode": 4}) is None
+    assert training_total([12.5, None, 5.0]) == ("training 18 s (sum over 2 runs) (1 resumed from "
+                                                 "checkpoints that did not record it: not counted)")
+    assert training_total([None, None]).startswith("training time unknown (2 resumed")
 
 
 def test_changing_the_train_overrides_of_a_study_is_refused(tmp_path, compose_cfg):

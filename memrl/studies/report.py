@@ -98,6 +98,14 @@ def _unknown(count: int) -> str:
     return f" ({count} resumed from checkpoints that did not record it: not counted)" if count else ""
 
 
+def training_total(walls: Sequence[float | None]) -> str:
+    """``training 1,234 s (sum over runs)``, naming the runs whose time is unknown."""
+    known = [w for w in walls if w is not None]
+    if walls and not known:
+        return f"training time unknown{_unknown(len(walls))}"
+    return f"training {sum(known):,.0f} s (sum over {len(known)} runs){_unknown(len(walls) - len(known))}"
+
+
 def _yaml(value: Any) -> str:
     return "null" if value is None else str(value)
 
@@ -368,7 +376,6 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
     grid = " \u00d7 ".join(f"{axis} {', '.join(dict.fromkeys(values))}" for axis, values in axes if values)
     evals = sum(r.wall_s for r in [*results, *inputs.stage1])
     walls = [train_wall(_summary(c)) for c in inputs.finished]
-    train_wall_s = sum(w for w in walls if w is not None)
     lines = [f"# Study {inputs.name}: Table III from trained agents", "",
              f"- command: `{inputs.command}`",
              f"- grid: {grid} ({len(inputs.finished)} of {len(inputs.cells)} runs finished); baselines: "
@@ -380,8 +387,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
              f"{p['vehicles_count'][0]}\u2013{p['vehicles_count'][1]} other cars, {p['duration']} steps, "
              f"scene seed {p['seed']}",
              f"- machine: {machine(inputs.cells)}",
-             f"- total: training {train_wall_s:,.0f} s (sum over runs){_unknown(walls.count(None))}, "
-             f"evaluation {evals:,.0f} s",
+             f"- total: {training_total(walls)}, evaluation {evals:,.0f} s",
              f"{WALL_PREFIX} {inputs.wall_s:,.0f} s for this call",
              f"{DATE_PREFIX} {time.strftime('%Y-%m-%d %H:%M:%S %Z')}", ""]
     if inputs.failed:
