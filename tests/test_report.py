@@ -284,3 +284,31 @@ def test_the_study_report_counts_non_goal_episodes_that_survived_and_reached(tmp
 
     assert "| B | 2 | 37.5 | seed 0: 25, seed 1: 50 |" in both_section([[a, b]], StatsConfig())
     assert both_section([[]], StatsConfig()) == []
+
+
+def test_the_study_report_splits_non_goal_scores_by_the_number_of_other_cars(tmp_path):
+    """Episodes pooled over the row's seeds per car count, against a hand count."""
+    import dataclasses
+
+    from memrl.evaluation.protocol import ProtocolConfig, scenario_seeds
+    from memrl.evaluation.results import write_result
+    from memrl.evaluation.stats import StatsConfig
+    from memrl.studies.traffic import by_cars, traffic_section
+    from tests.eval_helpers import records
+
+    def result(unit: str, survived: list[bool], goal: list[bool], cars: list[int]):
+        recs = [dataclasses.replace(r, vehicles=v) for r, v in zip(
+            records(survived, goal, "non_goal", seeds=scenario_seeds(0, 4)), cars, strict=True)]
+        recs += records([False] * 4, [False] * 4, "random", seeds=scenario_seeds(0, 4))  # not counted
+        return write_result(tmp_path / unit, "Default", recs, ProtocolConfig(episodes=4),
+                            scenario_seeds(0, 4), {"unit": unit})
+
+    a = result("seed 0", [True, False, True, False], [True, True, False, False], [0, 5, 0, 5])
+    b = result("seed 1", [True, True, False, False], [True, True, True, True], [0, 2, 5, 5])
+    # 0 cars: 3 episodes, all survived, 2 reached; 2 cars: 1, survived and reached;
+    # 5 cars: 4 episodes, none survived, 3 reached
+    assert by_cars([a, b]) == {0: (3, 100.0, 200 / 3), 2: (1, 100.0, 100.0), 5: (4, 0.0, 75.0)}
+    lines = traffic_section([[a, b]], StatsConfig())
+    assert "| row | 0 cars | 2 cars | 5 cars |" in lines
+    assert "| Default | 100 / 67 (3) | 100 / 100 (1) | 0 / 75 (4) |" in lines
+    assert traffic_section([[]], StatsConfig()) == []

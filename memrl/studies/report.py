@@ -25,6 +25,7 @@ from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.results import EvalResult
 from memrl.studies.evaluation import STAGE1_SUFFIX
 from memrl.studies.grid import Cell
+from memrl.studies.traffic import traffic_section
 
 WALL_PREFIX = "- wall time:"
 DATE_PREFIX = "- written:"
@@ -402,6 +403,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
               *stage1_section(inputs),
               *stage1_end_section([Path(str(r.meta["run"])) for r in inputs.runs if r.meta.get("run")]),
               *both_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
+              *traffic_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *training_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
     lines += ["## Files", "",
