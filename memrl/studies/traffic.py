@@ -37,10 +37,11 @@ def traffic_section(groups: Sequence[Sequence[EvalResult]], cfg: stats.StatsConf
     if not rows:
         return []
     cars = sorted({k for _, cells in rows for k in cells})
+    heads = [f"{k} car{'' if k == 1 else 's'}" for k in cars]
     lines = ["## Non-goal starts by traffic", "",
              "Survival / goal per 100 non-goal test episodes, split by the number of other cars in "
              "the scene, pooled over the row's units (episodes in brackets).", "",
-             "| row | " + " | ".join(f"{k} cars" for k in cars) + " |", "|---|" + "---|" * len(cars)]
+             "| row | " + " | ".join(heads) + " |", "|---|" + "---|" * len(cars)]
     for label, cells in rows:
         lines.append(f"| {label} | " + " | ".join(
             f"{cells[k][1]:.0f} / {cells[k][2]:.0f} ({cells[k][0]})" if k in cells else "\u2014"
