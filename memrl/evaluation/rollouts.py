@@ -109,7 +109,7 @@ def _outcome(c: Capture) -> str:
     r = c.record
     end = f"collision at step {r.steps}" if r.collided else f"no collision in {r.steps} steps"
     goal = f"target lane at step {c.reached_at}" if c.reached_at is not None else "target lane not reached"
-    return f"scene seed {r.seed}, {r.vehicles} cars: {end}; {goal}"
+    return f"scene seed {r.seed}, {r.vehicles} car{'' if r.vehicles == 1 else 's'}: {end}; {goal}"
 
 
 def auto_steps(c: Capture, n: int = 5, after: int = 30) -> list[int]:
