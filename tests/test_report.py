@@ -230,6 +230,16 @@ def test_fig5_pools_each_run_to_its_own_end():
     assert p.low[0] == 1.0 and p.high[0] == 3.0 and p.low[-1] == p.high[-1] == 3.0
 
 
+def test_fig5_marks_runs_that_end_together_once():
+    from memrl.evaluation.figures import drops
+
+    x = np.arange(101.0)  # span 100: drops within 2 of the first of a group are one mark
+    n = np.array([5] * 40 + [4] * 58 + [3, 2, 1])  # one run ends at 39, three at 97, 98, 99
+    assert drops(x, n) == [(39, 4), (97, 1)]
+    assert drops(x, n, merge=0.0) == [(39, 4), (97, 3), (98, 2), (99, 1)]
+    assert drops(x, np.full(101, 5)) == []
+
+
 def test_fig5_draws_runs_of_different_lengths_against_env_steps(tmp_path, compose_cfg):
     for seed, n in ((0, 40), (1, 25)):
         fake_run(tmp_path, compose_cfg, mode="B", seed=seed, episodes=n)

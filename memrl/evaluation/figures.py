@@ -164,10 +164,24 @@ def _panel(ax, runs: list[Curves], key: str, x_key: str, window: int, confidence
         ax.plot(p.x, p.mean, color=color, linewidth=1.8, label=f"{label} (n={int(p.n.max())})")
         if p.n.max() > 1:
             ax.fill_between(p.x, p.low, p.high, where=p.n >= 2, color=color, alpha=0.2, linewidth=0)
-        for j in np.flatnonzero(np.diff(p.n) < 0):  # a run ends: the mean goes on with fewer
+        for j, n in drops(p.x, p.n):  # runs end: the mean goes on with fewer
             ax.axvline(p.x[j], color=color, linestyle=":", linewidth=0.8)
-            ax.annotate(f"n={int(p.n[j + 1])}", (p.x[j], p.mean[j]), xytext=(3, 6),
+            ax.annotate(f"n={n}", (p.x[j], p.mean[j]), xytext=(3, 6),
                         textcoords="offset points", fontsize=7, color=color)
+
+
+def drops(x: np.ndarray, n: np.ndarray, merge: float = 0.02) -> list[tuple[int, int]]:
+    """Where the number of runs drops, as (index, runs left after it); drops closer than
+    ``merge`` of the x range to the first of their group are one mark with the group's last n
+    (runs of one budget end within a few env steps of each other)."""
+    out: list[tuple[int, int]] = []
+    span = float(x[-1] - x[0]) if len(x) else 0.0
+    for j in np.flatnonzero(np.diff(n) < 0):
+        if out and x[j] - x[out[-1][0]] <= merge * span:
+            out[-1] = (out[-1][0], int(n[j + 1]))
+        else:
+            out.append((int(j), int(n[j + 1])))
+    return out
 
 
 def learning_curves(runs: list[Curves], path: Path, *, window: int = 10, confidence: float = 0.95,
