@@ -152,7 +152,7 @@ def test_smoothing_and_bands():
     assert lo.tolist() == [0.0, 10.0] and hi.tolist() == [2.0, 10.0]
 
 
-def test_fig5_has_a_periodic_panel_when_runs_logged_one(tmp_path, compose_cfg):
+def test_fig5_has_periodic_panels_when_runs_logged_them(tmp_path, compose_cfg):
     for seed in (0, 1):
         run = fake_run(tmp_path, compose_cfg, mode="B", seed=seed, episodes=40)
         with (run / PERIODIC_CSV).open("w", newline="") as f:
@@ -163,7 +163,7 @@ def test_fig5_has_a_periodic_panel_when_runs_logged_one(tmp_path, compose_cfg):
     runs = find_training_runs([tmp_path])
     assert [(r.label, r.seed) for r in runs] == [("B", 0), ("B", 1)] and runs[0].periodic is not None
     path = learning_curves(runs, tmp_path / "fig5.png", window=5, n_resamples=100)
-    assert path is not None and cv2.imread(str(path)).shape[1] == 1800  # three panels at 120 dpi
+    assert path is not None and cv2.imread(str(path)).shape[1] == 2400  # four panels at 120 dpi
     assert learning_curves([], tmp_path / "none.png") is None
 
 

@@ -4,9 +4,9 @@ Each run's ``episodes.csv`` is smoothed with a trailing moving average over epis
 against its env steps, faintly, to its own end. The mean over the runs of a row is taken on a
 common grid of env steps, counting each run only up to its end (:func:`pool`), and shaded with
 a percentile-bootstrap interval over the runs present; where a run ends the figure says how
-many remain (``n=k``). A third panel shows the periodic evaluation (``eval_periodic.csv``) when
-runs have it. :func:`stage_switch` draws mode B's periodic evaluation through stage 2 between
-the protocol scores of its stage-1 and final weights.
+many remain (``n=k``). Two more panels show the periodic evaluation (``eval_periodic.csv``:
+non-goal survival and goal) when runs have it. :func:`stage_switch` draws mode B's periodic
+evaluation through stage 2 between the protocol scores of its stage-1 and final weights.
 """
 
 from __future__ import annotations
@@ -186,26 +186,28 @@ def drops(x: np.ndarray, n: np.ndarray, merge: float = 0.02) -> list[tuple[int, 
 
 def learning_curves(runs: list[Curves], path: Path, *, window: int = 10, confidence: float = 0.95,
                     n_resamples: int = 2000) -> Path | None:
-    """Write Fig. 5 (and the periodic-evaluation panel when any run has one) to ``path``."""
+    """Write Fig. 5 (and the periodic-evaluation panels, non-goal survival and goal, when any
+    run has one) to ``path``."""
     if not runs:
         log.info("fig. 5: no training runs (episodes.csv + config.yaml) found; skipped")
         return None
     periodic = any(r.periodic for r in runs)
-    fig = Figure(figsize=(15 if periodic else 10, 4), layout="constrained")
+    fig = Figure(figsize=(20 if periodic else 10, 4), layout="constrained")
     FigureCanvasAgg(fig)  # no pyplot: no global state, no GUI backend
-    axes = fig.subplots(1, 3 if periodic else 2)
+    axes = fig.subplots(1, 4 if periodic else 2)
     specs = [("return", "(a) return", "return [reward per episode]"),
              ("survival_steps", "(b) survival", "survival [action steps per episode]")]
     for ax, (key, title, ylabel) in zip(axes, specs, strict=False):
         _panel(ax, runs, key, "env_steps", window, confidence, n_resamples)
         ax.set(title=title, xlabel="env steps (agent actions)", ylabel=ylabel)
         ax.grid(alpha=0.3)
-    if periodic:
-        ax = axes[2]
-        _panel(ax, runs, "survival_non_goal", "env_steps", 1, confidence, n_resamples, source="periodic")
-        ax.set(title="(c) periodic evaluation: non-goal survival", xlabel="env steps (agent actions)",
-               ylabel="survival [% of episodes]")
-        ax.grid(alpha=0.3)
+    if periodic:  # the greedy agent's non-goal survival and goal at the periodic checks
+        for ax, (key, title, what) in zip(axes[2:], [("survival_non_goal", "(c)", "survival"),
+                                                     ("goal_non_goal", "(d)", "goal")], strict=True):
+            _panel(ax, runs, key, "env_steps", 1, confidence, n_resamples, source="periodic")
+            ax.set(title=f"{title} periodic evaluation: non-goal {what}",
+                   xlabel="env steps (agent actions)", ylabel=f"{what} [% of episodes]")
+            ax.grid(alpha=0.3)
     axes[0].legend()
     pct = f"{100 * confidence:g}%"
     fig.suptitle(f"Training curves: mean over seeds (each seed faint, to its own end), smoothed over "
