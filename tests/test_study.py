@@ -224,6 +224,15 @@ def test_a_runs_training_time_counts_every_call_or_is_said_to_be_unknown():
     assert training_total([None, None]).startswith("training time unknown (2 resumed")
 
 
+def test_an_interim_report_of_a_study_with_no_finished_run_is_refused(tmp_path, compose_cfg):
+    from memrl.study import study
+
+    folder = tmp_path / "s"
+    with pytest.raises(ConfigError, match="study.train.*none has finished yet") as info:
+        study(compose_cfg("study", [*study_overrides(folder), "study.train=false"]))
+    assert "\n" not in str(info.value) and not folder.exists()  # nothing written, no baseline run
+
+
 def test_changing_the_train_overrides_of_a_study_is_refused(tmp_path, compose_cfg):
     from memrl.study import check_record, study
 
