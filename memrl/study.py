@@ -167,12 +167,15 @@ def study(cfg: DictConfig) -> StudyResult:
     for cell in grid:
         assert cell.cfg is not None
         check_train(cell.cfg)
-    if not s.train and not any(c.finished() for c in grid):
-        raise config_error("study.train", f"false reports the finished runs of {folder}, and none has "
-                           "finished yet (study.status=true shows where they stand)")
-    check_record(folder, cfg)
-    outcome = run_cells(grid, int(s.jobs)) if s.train else \
-        Outcome(skipped=[c.name for c in grid if c.finished()])
+    if s.train:
+        check_record(folder, cfg)
+        outcome = run_cells(grid, int(s.jobs))
+    else:  # an interim report: the runs finished so far
+        outcome = Outcome(skipped=[c.name for c in grid if c.finished()])
+        if not outcome.skipped:
+            raise config_error("study.train", f"false reports the finished runs of {folder}, and none "
+                               "has finished yet (study.status=true shows where they stand)")
+        check_record(folder, cfg)
     finished = [c for c in grid if c.finished()]
 
     settings = ev.EvalSettings(check_protocol(cfg.protocol), int(s.workers), int(s.batch), bool(s.progress))

@@ -309,11 +309,9 @@ class Trainer:
         self._frames0, self._updates0 = self.counters.frames, self.counters.updates
         self.rounds.update_seconds = 0.0
 
-    def _trained_s(self) -> float | None:
-        """Training seconds of the run so far, over all its calls."""
-        if self._wall_before is None:
-            return None
-        return self._wall_before + time.perf_counter() - self._t_start
+    def _trained_s(self, elapsed: float) -> float | None:
+        """Training seconds of the run over all its calls, this one at ``elapsed`` seconds."""
+        return None if self._wall_before is None else self._wall_before + elapsed
 
     def _progress_bar(self) -> tqdm:
         cfg, c = self.cfg, self.counters
@@ -338,7 +336,7 @@ class Trainer:
             "recent": list(self._recent),
             "rng": ckpt.rng_state(),
             "stage1_best": self.stage1_checks.best if self.stage1_checks is not None else None,
-            "wall_s": self._trained_s(),
+            "wall_s": self._trained_s(time.perf_counter() - self._t_start),
         }
         agent_part = getattr(self.stage.buffer, "online_buffer", self.stage.buffer)  # not the demos
         agent_data = online and len(agent_part) > 0
@@ -406,7 +404,7 @@ class Trainer:
             learner_busy=self.rounds.update_seconds / max(wall, 1e-9),
             resumed_from_episode=self.resumed_from, num_envs=self.num_envs,
             device=str(self.device),
-            train_wall_s=None if self._wall_before is None else self._wall_before + wall)
+            train_wall_s=self._trained_s(wall))
         env_cfg = OmegaConf.to_container(self.cfg.env, resolve=True)
         save_qnet(self.out_dir / "checkpoints" / "final.pt", self.learner.qnet,
                   env_cfg, {"summary": dataclasses.asdict(summary)})  # type: ignore[arg-type]

@@ -100,7 +100,7 @@ def _unknown(count: int) -> str:
 
 
 def training_total(walls: Sequence[float | None]) -> str:
-    """``training 1,234 s (sum over runs)``, naming the runs whose time is unknown."""
+    """``training 1,234 s (sum over 4 runs)``, naming the runs whose time is unknown."""
     known = [w for w in walls if w is not None]
     if walls and not known:
         return f"training time unknown{_unknown(len(walls))}"
