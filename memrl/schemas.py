@@ -550,6 +550,11 @@ class StudyConfig:
     are kept)."""
     progress: bool = True
     """Progress bars of the evaluations."""
+    extend_from: str | None = None
+    """An earlier study's folder whose finished runs this study continues to its bigger budget
+    (``total_frames`` / ``total_episodes`` in ``train_overrides``; every other key the same):
+    each run of this grid not started yet begins as a copy of the earlier run of its name and
+    resumes from its last checkpoint (:mod:`memrl.studies.extend`). None: start from scratch."""
     train: bool = True
     """False: train nothing; evaluate and report the runs finished so far (an interim report
     of a study that trains in another process; the others are listed as not finished)."""
@@ -610,6 +615,9 @@ def check_study(cfg: DictConfig) -> None:
                                    f"than {', '.join(grid)} (the grid sets those: study.modes, study.seeds, "
                                    "study.opponents, study.variants)")
     check_writable(str(s.dir), "study.dir")
+    if s.extend_from is not None and Path(str(s.extend_from)).resolve() == Path(str(s.dir)).resolve():
+        raise config_error("study.extend_from", f"{s.extend_from} is this study's own folder; give "
+                           "the folder of the earlier study whose runs this one continues")
 
 
 SCHEMAS: dict[str, type] = {"train": TrainSchema, "record": RecordSchema, "evaluate": EvaluateSchema,

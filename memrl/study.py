@@ -47,6 +47,8 @@ class StudyResult:
     """Runs finished before this call."""
     trained: list[str] = field(default_factory=list)
     resumed: list[str] = field(default_factory=list)
+    extended: list[str] = field(default_factory=list)
+    """Runs this call began as copies of an earlier study's (``study.extend_from``), then resumed."""
     failed: dict[str, str] = field(default_factory=dict)
     evaluated: list[str] = field(default_factory=list)
     """Evaluation folders written by this call."""
@@ -69,6 +71,8 @@ def command_line(cfg: DictConfig) -> str:
                 f"study.seeds=[{','.join(map(str, s.seeds))}]",
                 f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
                 f"study.train_overrides={json.dumps(list(s.train_overrides))}"]
+        if s.get("extend_from"):
+            args.append(f"study.extend_from={s.extend_from}")
         if s.get("variants"):
             args.append("study.variants={" + ",".join(f"{k}:{json.dumps(v)}"
                                                       for k, v in variants_of(cfg).items()) + "}")
@@ -156,6 +160,7 @@ def study(cfg: DictConfig) -> StudyResult:
     from memrl.report import report, stats_config
     from memrl.schemas import check_train
     from memrl.studies import evaluation as ev
+    from memrl.studies.extend import extend, sources
     from memrl.studies.grid import Outcome, cells, run_cells
     from memrl.studies.report import ReportInputs, stage_figure, write_report
 
@@ -168,9 +173,12 @@ def study(cfg: DictConfig) -> StudyResult:
         assert cell.cfg is not None
         check_train(cell.cfg)
     if s.train:
+        earlier = sources(grid, Path(str(s.extend_from))) if s.extend_from else []
         check_record(folder, cfg)
+        extended = extend(earlier, folder / STUDY_JSON)
         outcome = run_cells(grid, int(s.jobs))
     else:  # an interim report: the runs finished so far
+        extended = []
         outcome = Outcome(skipped=[c.name for c in grid if c.finished()])
         if not outcome.skipped:
             raise config_error("study.train", f"false reports the finished runs of {folder}, and none "
@@ -192,7 +200,7 @@ def study(cfg: DictConfig) -> StudyResult:
     pairs = comparison_pairs(grid, labels)
     folders = [c.run_dir for c in finished] + [folder / "baselines" / str(b) for b in s.baselines]
     result = StudyResult(folder, folder / "report.md", folder / "table3.csv", outcome.skipped,
-                         outcome.trained, outcome.resumed, outcome.failed, evals.made, evals.reused,
+                         outcome.trained, outcome.resumed, extended, outcome.failed, evals.made, evals.reused,
                          command=command_line(cfg))
     if not folders:
         raise RuntimeError(f"study {folder}: no run finished and no baseline to report")

@@ -35,8 +35,8 @@ def quoted(items: list[str]) -> str:
 
 
 def study_overrides(folder: Path, train: list[str] = TRAIN, modes: str = "[Default,B]",
-                    report: tuple[str, ...] = ()) -> list[str]:
-    return [f"study.dir={folder}", f"study.modes={modes}", "study.seeds=[0,1]",
+                    report: tuple[str, ...] = (), seeds: str = "[0,1]") -> list[str]:
+    return [f"study.dir={folder}", f"study.modes={modes}", f"study.seeds={seeds}",
             f"study.train_overrides={quoted(train)}", "study.workers=1", "study.progress=false",
             f"study.report_overrides={quoted(['n_resamples=200', 'curve_resamples=50', *report])}",
             "protocol.episodes=2", "protocol.duration=30"]
@@ -395,3 +395,55 @@ def test_a_run_saved_before_the_variant_key_still_resumes(compose_cfg):
     cfg = compose_cfg("train", TRAIN)
     old = {k: v for k, v in comparable(cfg).items() if k != "variant"}  # a checkpoint's config then
     assert cfg.variant is None and config_diff(with_legacy_values(old), comparable(cfg)) == []
+
+
+def test_a_study_continues_an_earlier_studys_runs_to_a_bigger_budget(tmp_path, compose_cfg):
+    """study.extend_from: the earlier run, copied and resumed, ends as an uninterrupted run at
+    the bigger budget ends; the earlier study stays as it was; bad sources are refused."""
+    from memrl.dqn import checkpoint as ckpt
+    from memrl.study import study
+
+    long = [*TRAIN, "total_episodes=null"]  # the smoke preset also stops at 3 episodes
+    short = [o if o != "total_frames=64" else "total_frames=32" for o in long]
+    extra = ["study.baselines=[]"]
+    first = study(compose_cfg("study", [*study_overrides(tmp_path / "a", short, "[B]", seeds="[0]"), *extra]))
+    fresh = study(compose_cfg("study", [*study_overrides(tmp_path / "c", long, "[B]", seeds="[0]"), *extra]))
+    src = first.dir / "runs" / "B_constant_s0"
+    kept = {p: p.read_bytes() for p in src.rglob("*") if p.is_file() and "checkpoints" in p.parts}
+    ended = json.loads((src / "summary.json").read_text())
+    assert 32 <= ended["frames"] < 64 and fresh.trained == ["B_constant_s0"]
+
+    ext = study(compose_cfg("study", [*study_overrides(tmp_path / "b", long, "[B]", seeds="[0]"), *extra,
+                                      f"study.extend_from={first.dir}"]))
+    assert ext.extended == ext.resumed == ["B_constant_s0"] and ext.trained == []
+    run, ref = ext.dir / "runs" / "B_constant_s0", fresh.dir / "runs" / "B_constant_s0"
+    done, uninterrupted = (json.loads((r / "summary.json").read_text()) for r in (run, ref))
+    assert done["resumed_from_episode"] == ended["episodes"]
+    for key in ("frames", "episodes", "updates", "stage"):
+        assert done[key] == uninterrupted[key], key
+    assert done["frames"] >= 64
+    a = torch.load(run / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    b = torch.load(ref / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert (run / "episodes.csv").read_text() == (ref / "episodes.csv").read_text()
+    assert json.loads((ext.dir / "study.json").read_text())["extended"] == {"B_constant_s0": str(src)}
+    # the earlier run is untouched (its checkpoint files were linked, not moved or rewritten)
+    assert {p: p.read_bytes() for p in kept} == kept and (src / "summary.json").is_file()
+    ckpt.check_manifest(ckpt.find(src))
+    # again: the continued run is finished now, nothing is copied or trained
+    again = study(compose_cfg("study", [*study_overrides(tmp_path / "b", long, "[B]", seeds="[0]"), *extra,
+                                        f"study.extend_from={first.dir}"]))
+    assert again.extended == again.trained == again.resumed == [] and again.skipped == ["B_constant_s0"]
+
+    refusals = [
+        ([*long, "agent.lr=0.001"], str(first.dir), "agent.lr"),
+        (short, str(first.dir), "already within this study's budget"),
+        (long, str(tmp_path / "nowhere"), "holds no runs/"),
+        (long, str(tmp_path / "d"), "this study's own folder"),
+    ]
+    for train, earlier, text in refusals:
+        with pytest.raises(ConfigError, match="study.extend_from") as info:
+            study(compose_cfg("study", [*study_overrides(tmp_path / "d", train, "[B]", seeds="[0]"), *extra,
+                                        f"study.extend_from={earlier}"]))
+        assert text in str(info.value) and "\n" not in str(info.value)
+        assert not (tmp_path / "d").exists()  # nothing written

@@ -1,0 +1,89 @@
+"""``study.extend_from``: continue the finished runs of an earlier study to this study's bigger
+budget, e.g. Table III at 100,000 env steps taken on to 300,000 without retraining the first
+100,000.
+
+Each cell of this grid that has no folder yet gets a copy of the earlier study's finished run of
+the same name, without what marks it finished (``summary.json``, ``checkpoints/final.pt``, its
+protocol evaluation ``eval/``); the grid then resumes it from its last checkpoint like a killed
+run. The budget keys (``total_frames``, ``total_episodes``) may differ from the earlier run's,
+every other key must match (the resume's own check, made before anything is copied). A run
+continued this way ends where an uninterrupted run at the bigger budget ends (tested):
+epsilon's decay is set in env steps (``agent.eps_decay_frames``), not as a share of the budget.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+from memrl.errors import config_error
+from memrl.studies.grid import Cell
+
+log = logging.getLogger(__name__)
+
+FINISHED_MARKS = ("summary.json", "final.pt", "eval", "train.lock")
+"""What a copied run leaves behind: the marks of a finished run and its lock."""
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    """Checkpoint files are hard links (a checkpoint is replaced as a new folder, never written
+    in place); the logs and CSVs a resumed run appends to are copies."""
+    if f"{os.sep}checkpoints{os.sep}" in src:
+        try:
+            os.link(src, dst)
+            return
+        except OSError:  # another file system, or links not allowed: copy
+            pass
+    shutil.copy2(src, dst)
+
+
+def sources(grid: Sequence[Cell], earlier: Path) -> list[tuple[Cell, Path]]:
+    """The cells without a folder and the earlier study's finished run of each; refuses (one
+    line, nothing written) a run made under another config or already at this budget."""
+    from memrl.dqn import checkpoint as ckpt
+    from memrl.dqn.schedule import Budget
+
+    if not (earlier / "runs").is_dir():
+        raise config_error("study.extend_from", f"{earlier} holds no runs/ folder (give the folder of "
+                           "an earlier study, its study.dir)")
+    out = []
+    for cell in grid:
+        src = earlier / "runs" / cell.name
+        if cell.run_dir.exists() or not (src / "summary.json").is_file():
+            continue
+        assert cell.cfg is not None
+        try:
+            ckpt.load_state(ckpt.find(src), cell.cfg)
+        except ckpt.CheckpointError as err:
+            raise config_error("study.extend_from", f"{src} cannot be continued by this study: "
+                               + " ".join(str(err).split())) from err
+        done = json.loads((src / "summary.json").read_text())
+        if Budget(cell.cfg.total_frames, cell.cfg.total_episodes).done(done["frames"], done["episodes"]):
+            raise config_error("study.extend_from", f"{src} ended at {done['frames']:,} env steps and "
+                               f"{done['episodes']:,} episodes, already within this study's budget "
+                               f"(total_frames={cell.cfg.total_frames}, total_episodes="
+                               f"{cell.cfg.total_episodes}): nothing to continue")
+        out.append((cell, src))
+    return out
+
+
+def extend(pairs: Sequence[tuple[Cell, Path]], record: Path) -> list[str]:
+    """Copy each earlier run (:func:`sources`) into its cell's folder and note it in the study's
+    ``record`` (``study.json``: ``"extended"``, run -> the folder it continues); returns the
+    cells copied, which the grid then resumes."""
+    if pairs:
+        doc = json.loads(record.read_text())
+        doc["extended"] = {**doc.get("extended", {}), **{cell.name: str(src) for cell, src in pairs}}
+        record.write_text(json.dumps(doc, indent=2))
+    for cell, src in pairs:
+        tmp = cell.run_dir.with_name(cell.run_dir.name + ".extending")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(src, tmp, ignore=shutil.ignore_patterns(*FINISHED_MARKS),
+                        copy_function=_link_or_copy)
+        tmp.rename(cell.run_dir)  # a kill during the copy leaves no half run folder
+        log.info("%s: continued from %s", cell.name, src)
+    return [cell.name for cell, _ in pairs]
