@@ -532,3 +532,20 @@ def test_stage2_keeps_prior_knowledge_at_its_stratified_share(compose_cfg, tmp_p
     train(paper_b, tmp_path / "paper_b", demos=demos)
     stage2 = [r for r in rows(tmp_path / "paper_b" / "updates.csv") if r["stage"] == "B2"]
     assert stage2 and {(r["demo_count_min"], r["demo_count_max"]) for r in stage2} == {("0", "0")}
+
+
+def test_a_finished_run_resumed_with_a_bigger_budget_ends_as_an_uninterrupted_one(compose_cfg, tmp_path,
+                                                                                  demos):
+    """``resume=<finished run> total_frames=<more>``: it trains on from its last checkpoint to
+    the weights and episodes of a run given the bigger budget from the start."""
+    base = TINY + ["total_episodes=null", "env.num_envs=2", "+mode=B", "mode.stage1.criterion=max_updates"]
+    full = train(compose_cfg("train", base + ["total_frames=96"]), tmp_path / "full", demos=demos)
+    short = train(compose_cfg("train", base + ["total_frames=48"]), tmp_path / "ext", demos=demos)
+    assert short.frames < full.frames
+    more = train(compose_cfg("train", base + ["total_frames=96", f"resume={tmp_path / 'ext'}"]), demos=demos)
+    assert more.resumed_from_episode == short.episodes
+    for key in ("frames", "episodes", "updates", "stage"):
+        assert getattr(more, key) == getattr(full, key), key
+    assert rows(tmp_path / "ext" / "episodes.csv") == rows(tmp_path / "full" / "episodes.csv")
+    assert_same_final_weights_and_agent_buffers(compose_cfg("train", base + ["total_frames=96"]), demos,
+                                                tmp_path / "full", tmp_path / "ext")
