@@ -440,7 +440,10 @@ def test_a_study_continues_an_earlier_studys_runs_to_a_bigger_budget(tmp_path, c
         (short, str(first.dir), "already within this study's budget"),
         (long, str(tmp_path / "nowhere"), "holds no runs/"),
         (long, str(tmp_path / "d"), "this study's own folder"),
+        (long, str(tmp_path / "unfinished"), "has not finished"),
     ]
+    shutil.copytree(first.dir, tmp_path / "unfinished")
+    (tmp_path / "unfinished" / "runs" / "B_constant_s0" / "summary.json").unlink()
     for train, earlier, text in refusals:
         with pytest.raises(ConfigError, match="study.extend_from") as info:
             study(compose_cfg("study", [*study_overrides(tmp_path / "d", train, "[B]", seeds="[0]"), *extra,

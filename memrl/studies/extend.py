@@ -42,8 +42,9 @@ def _link_or_copy(src: str, dst: str) -> None:
 
 
 def sources(grid: Sequence[Cell], earlier: Path) -> list[tuple[Cell, Path]]:
-    """The cells without a folder and the earlier study's finished run of each; refuses (one
-    line, nothing written) a run made under another config or already at this budget."""
+    """The cells without a folder and the earlier study's finished run of each (cells it lacks
+    start from scratch); refuses (one line, nothing written) an earlier run not finished, made
+    under another config, or already at this budget."""
     from memrl.dqn import checkpoint as ckpt
     from memrl.dqn.schedule import Budget
 
@@ -53,8 +54,11 @@ def sources(grid: Sequence[Cell], earlier: Path) -> list[tuple[Cell, Path]]:
     out = []
     for cell in grid:
         src = earlier / "runs" / cell.name
-        if cell.run_dir.exists() or not (src / "summary.json").is_file():
+        if cell.run_dir.exists() or not src.exists():
             continue
+        if not (src / "summary.json").is_file():
+            raise config_error("study.extend_from", f"{src} has not finished (finish the earlier study "
+                               "first: run its own command again)")
         assert cell.cfg is not None
         try:
             ckpt.load_state(ckpt.find(src), cell.cfg)
