@@ -52,6 +52,28 @@ def remove_new_entries(folder: Path, before: set[Path] | None) -> None:
             entry.unlink(missing_ok=True)
 
 
+def finished_summary(run_dir: Path, cfg: DictConfig) -> Summary | None:
+    """The stored summary of a finished run whose budget ``cfg`` does not raise (the
+    checkpoint's config checked as a resume checks it), else None: resuming it has nothing to
+    train, and must not write its summary again (another process may have finished it)."""
+    import dataclasses
+    import json
+
+    from memrl.dqn import checkpoint as ckpt
+    from memrl.dqn.loop import Summary
+    from memrl.dqn.schedule import Budget
+
+    path = run_dir / "summary.json"
+    if not (path.is_file() and (run_dir / "checkpoints" / "final.pt").is_file()):
+        return None
+    done = json.loads(path.read_text())
+    if not Budget(cfg.total_frames, cfg.total_episodes).done(done["frames"], done["episodes"]):
+        return None  # a bigger budget: train on from the last checkpoint
+    ckpt.load_state(ckpt.find(run_dir), cfg)  # a run of another config is refused, as on resume
+    known = {f.name for f in dataclasses.fields(Summary)}
+    return Summary(**{k: v for k, v in done.items() if k in known})
+
+
 def train(cfg: DictConfig, out_dir: Path | None = None,
           demos: TensorDictBase | None = None) -> Summary:
     """Train one run; with ``cfg.resume`` set, continue that run folder from its checkpoint.
@@ -75,6 +97,11 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
     before = set(run_dir.iterdir()) if run_dir.is_dir() else None
     run_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(run_dir):
+        stored = finished_summary(run_dir, cfg) if cfg.resume else None
+        if stored is not None:
+            log.info("%s finished earlier at this budget (%d frames, %d episodes): nothing to "
+                     "train, summary.json kept", run_dir, stored.frames, stored.episodes)
+            return stored
         saved = cfg.copy()
         saved.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run too
         resolved = OmegaConf.to_container(saved, resolve=True)

@@ -549,3 +549,18 @@ def test_a_finished_run_resumed_with_a_bigger_budget_ends_as_an_uninterrupted_on
     assert rows(tmp_path / "ext" / "episodes.csv") == rows(tmp_path / "full" / "episodes.csv")
     assert_same_final_weights_and_agent_buffers(compose_cfg("train", base + ["total_frames=96"]), demos,
                                                 tmp_path / "full", tmp_path / "ext")
+
+
+def test_resuming_a_run_finished_at_this_budget_trains_nothing_and_keeps_its_files(compose_cfg, tmp_path):
+    """A second process (a study's, or the user's) resuming a run another one has finished
+    meanwhile returns the stored summary; before, it wrote summary.json again with its own
+    1-second wall time. Another config is still refused."""
+    cfg = compose_cfg("train", TINY + ["total_episodes=2"])
+    first = train(cfg, tmp_path)
+    files = ("summary.json", "episodes.csv", "updates.csv", "checkpoints/final.pt")
+    before = {f: (tmp_path / f).read_bytes() for f in files}
+    again = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
+    assert again == first
+    assert {f: (tmp_path / f).read_bytes() for f in files} == before
+    with pytest.raises(ckpt.CheckpointError, match="agent.lr"):
+        train(compose_cfg("train", TINY + ["total_episodes=2", "agent.lr=0.1", f"resume={tmp_path}"]))
