@@ -14,20 +14,23 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 STAMP = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),\d+\]")
+DONE = "[memrl.train][INFO] - done: "
 
 
 def calls(run: Path) -> tuple[float, int, list[str], datetime, datetime | None]:
     """Seconds summed over the run's calls, the number of calls, the commits, first start, last line."""
     events = json.loads((run / "provenance.json").read_text())
     starts = [datetime.fromisoformat(e["time"]) for e in events]
-    stamps = [datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S").replace(tzinfo=UTC)
-              for line in (run / "train.log").read_text().splitlines() if (m := STAMP.match(line))]
+    lines = [(datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S").replace(tzinfo=UTC), line)
+             for line in (run / "train.log").read_text().splitlines() if (m := STAMP.match(line))]
+    stamps = [t for t, _ in lines]
     total = 0.0
     for i, start in enumerate(starts):
         end = starts[i + 1] if i + 1 < len(starts) else None
-        lines = [t for t in stamps if t >= start and (end is None or t < end)]
-        if lines:
-            total += (lines[-1] - start).total_seconds()
+        window = [(t, line) for t, line in lines if t >= start and (end is None or t < end)]
+        done = [t for t, line in window if DONE in line]  # a call ends at its "done:" line
+        if window:  # (later lines there: a call that died before its provenance entry)
+            total += ((done[0] if done else window[-1][0]) - start).total_seconds()
     commits = sorted({e["git"]["commit"][:7] + ("+dirty" if e["git"]["dirty"] else "") for e in events})
     return total, len(starts), commits, starts[0], stamps[-1] if stamps else None
 
