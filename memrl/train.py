@@ -52,6 +52,13 @@ def remove_new_entries(folder: Path, before: set[Path] | None) -> None:
             entry.unlink(missing_ok=True)
 
 
+def budget_reached(cfg: DictConfig, summary: dict) -> bool:
+    """Whether a run that ended as ``summary`` (its ``summary.json``) is within ``cfg``'s budget."""
+    from memrl.dqn.schedule import Budget
+
+    return Budget(cfg.total_frames, cfg.total_episodes).done(summary["frames"], summary["episodes"])
+
+
 def finished_summary(run_dir: Path, cfg: DictConfig) -> Summary | None:
     """The stored summary of a finished run whose budget ``cfg`` does not raise (the
     checkpoint's config checked as a resume checks it), else None: resuming it has nothing to
@@ -61,13 +68,12 @@ def finished_summary(run_dir: Path, cfg: DictConfig) -> Summary | None:
 
     from memrl.dqn import checkpoint as ckpt
     from memrl.dqn.loop import Summary
-    from memrl.dqn.schedule import Budget
 
     path = run_dir / "summary.json"
     if not (path.is_file() and (run_dir / "checkpoints" / "final.pt").is_file()):
         return None
     done = json.loads(path.read_text())
-    if not Budget(cfg.total_frames, cfg.total_episodes).done(done["frames"], done["episodes"]):
+    if not budget_reached(cfg, done):
         return None  # a bigger budget: train on from the last checkpoint
     ckpt.load_state(ckpt.find(run_dir), cfg)  # a run of another config is refused, as on resume
     known = {f.name for f in dataclasses.fields(Summary)}

@@ -450,3 +450,25 @@ def test_a_study_continues_an_earlier_studys_runs_to_a_bigger_budget(tmp_path, c
                                         f"study.extend_from={earlier}"]))
         assert text in str(info.value) and "\n" not in str(info.value)
         assert not (tmp_path / "d").exists()  # nothing written
+
+
+def test_a_continued_run_links_its_checkpoint_files_and_copies_what_it_appends_to(tmp_path):
+    """Decided inside the run folder: an earlier study kept under a folder named checkpoints
+    still gets its CSVs copied (a resume appends to them), not linked."""
+    from memrl.studies.extend import copy_run
+
+    src = tmp_path / "checkpoints" / "runs" / "B_constant_s0"
+    for name in ("episodes.csv", "summary.json", "checkpoints/last/state.pt", "checkpoints/final.pt",
+                 "eval/eval.json"):
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        (src / name).write_text(name)
+    dst = tmp_path / "copy"
+    copy_run(src, dst)
+    files = sorted(str(p.relative_to(dst)) for p in dst.rglob("*") if p.is_file())
+    assert files == ["checkpoints/last/state.pt", "episodes.csv"]
+    def inode(path: Path) -> int:
+        return path.stat().st_ino
+
+    assert inode(dst / "checkpoints/last/state.pt") == inode(src / "checkpoints/last/state.pt")
+    assert inode(dst / "episodes.csv") != inode(src / "episodes.csv")
+    assert (dst / "episodes.csv").read_text() == "episodes.csv"

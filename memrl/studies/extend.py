@@ -29,16 +29,22 @@ FINISHED_MARKS = ("summary.json", "final.pt", "eval", "train.lock")
 """What a copied run leaves behind: the marks of a finished run and its lock."""
 
 
-def _link_or_copy(src: str, dst: str) -> None:
-    """Checkpoint files are hard links (a checkpoint is replaced as a new folder, never written
-    in place); the logs and CSVs a resumed run appends to are copies."""
-    if f"{os.sep}checkpoints{os.sep}" in src:
-        try:
-            os.link(src, dst)
-            return
-        except OSError:  # another file system, or links not allowed: copy
-            pass
-    shutil.copy2(src, dst)
+def copy_run(src: Path, dst: Path) -> None:
+    """``src`` (a run folder) to ``dst`` without :data:`FINISHED_MARKS`: the files under its
+    ``checkpoints/`` as hard links (a checkpoint is replaced as a new folder, never written in
+    place, and a resume loads the buffer into memory), the logs and CSVs a resumed run appends
+    to as copies."""
+
+    def link_or_copy(file: str, to: str) -> None:
+        if Path(file).relative_to(src).parts[0] == "checkpoints":
+            try:
+                os.link(file, to)
+                return
+            except OSError:  # another file system, or links not allowed: copy
+                pass
+        shutil.copy2(file, to)
+
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns(*FINISHED_MARKS), copy_function=link_or_copy)
 
 
 def sources(grid: Sequence[Cell], earlier: Path) -> list[tuple[Cell, Path]]:
@@ -46,7 +52,7 @@ def sources(grid: Sequence[Cell], earlier: Path) -> list[tuple[Cell, Path]]:
     start from scratch); refuses (one line, nothing written) an earlier run not finished, made
     under another config, or already at this budget."""
     from memrl.dqn import checkpoint as ckpt
-    from memrl.dqn.schedule import Budget
+    from memrl.train import budget_reached
 
     if not (earlier / "runs").is_dir():
         raise config_error("study.extend_from", f"{earlier} holds no runs/ folder (give the folder of "
@@ -66,7 +72,7 @@ def sources(grid: Sequence[Cell], earlier: Path) -> list[tuple[Cell, Path]]:
             raise config_error("study.extend_from", f"{src} cannot be continued by this study: "
                                + " ".join(str(err).split())) from err
         done = json.loads((src / "summary.json").read_text())
-        if Budget(cell.cfg.total_frames, cell.cfg.total_episodes).done(done["frames"], done["episodes"]):
+        if budget_reached(cell.cfg, done):
             raise config_error("study.extend_from", f"{src} ended at {done['frames']:,} env steps and "
                                f"{done['episodes']:,} episodes, already within this study's budget "
                                f"(total_frames={cell.cfg.total_frames}, total_episodes="
@@ -86,8 +92,7 @@ def extend(pairs: Sequence[tuple[Cell, Path]], record: Path) -> list[str]:
     for cell, src in pairs:
         tmp = cell.run_dir.with_name(cell.run_dir.name + ".extending")
         shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(src, tmp, ignore=shutil.ignore_patterns(*FINISHED_MARKS),
-                        copy_function=_link_or_copy)
+        copy_run(src, tmp)
         tmp.rename(cell.run_dir)  # a kill during the copy leaves no half run folder
         log.info("%s: continued from %s", cell.name, src)
     return [cell.name for cell, _ in pairs]
