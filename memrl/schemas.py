@@ -139,14 +139,17 @@ def check_train(cfg: DictConfig) -> None:
                            f"names), got {cfg.variant!r}")
     if cfg.resume is not None and not Path(cfg.resume).is_dir():
         raise config_error("resume", f"no run folder {cfg.resume}")
+    from memrl.modes import mode_of
+
+    mode = mode_of(cfg)
     demos = cfg.mode.get("demos_path")
-    if cfg.mode.name in ("A", "B") and demos is not None and not Path(str(demos)).is_dir():
+    if mode.needs_demos and demos is not None and not Path(str(demos)).is_dir():
         raise config_error("mode.demos_path", f"no dataset folder {demos} (a folder made by "
                            "python -m memrl.record, or null for the scripted example)")
-    if cfg.mode.name in ("A", "B") and demos is None:
+    if mode.needs_demos and demos is None:
         check_recipe(cfg.mode.get("example"), cfg.env, "mode.example")
     init = cfg.mode.stage1.get("init") if "stage1" in cfg.mode else None
-    if init is not None and cfg.mode.name == "B":  # like every stage-1 key, unused by Default and A
+    if init is not None and mode.pretrains:  # like every stage-1 key, read by pretraining modes only
         from memrl.checkpoint import stage1_source
         from memrl.dqn.checkpoint import CheckpointError
 
@@ -502,7 +505,7 @@ def check_preview(cfg: DictConfig) -> None:
 # ---------------------------------------------------------------------------------------------
 # study
 
-STUDY_MODES = ("Default", "A", "B")
+STUDY_MODES = ("Default", "A", "B")  # the labels of the modes of memrl.modes (tested equal)
 OPPONENTS = ("constant", "learned", "mixed")
 BASELINES = ("scripted", "random")
 GRID_KEYS = ("seed", "mode", "resume", "variant")

@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
 from memrl.errors import config_error
+from memrl.modes import MODES, by_label
 from memrl.schemas import check_study
 
 if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
@@ -146,7 +147,8 @@ def report_config(cfg: DictConfig, folders: list[Path], labels: list[str],
 def comparison_pairs(grid: list[Cell], labels: list[str]) -> list[list[str]]:
     """B vs Default and A vs Default within each (variant, traffic): ``[B (cue), Default (cue)]``."""
     suffixes = dict.fromkeys(c.label[len(c.mode):] for c in grid)
-    return [[f"{m}{sfx}", f"Default{sfx}"] for m in ("B", "A") for sfx in suffixes
+    others = [m.label for m in reversed(MODES.values()) if m.name != "default"]  # B, A
+    return [[f"{m}{sfx}", f"Default{sfx}"] for m in others for sfx in suffixes
             if f"Default{sfx}" in labels and f"{m}{sfx}" in labels]
 
 
@@ -190,7 +192,7 @@ def study(cfg: DictConfig) -> StudyResult:
     evals = ev.Evaluations()
     for cell in finished:
         ev.evaluate_run(cell.run_dir, settings, evals)
-        if s.stage1 and cell.mode == "B":
+        if s.stage1 and by_label(cell.mode).pretrains:
             ev.evaluate_stage1(cell.run_dir, folder / "stage1" / cell.name, settings, evals)
     for name in s.baselines:
         ev.evaluate_baseline(str(name), grid[0].cfg.env, folder / "baselines" / str(name),  # type: ignore[union-attr]

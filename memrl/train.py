@@ -97,7 +97,9 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
     check_train(cfg)  # every value, the env config and the named folders, before any write
     check_backend(cfg.get("logger"))
     run_dir = Path(cfg.resume) if cfg.resume else Path(out_dir or cfg.paths.output_dir)
-    if demos is None and cfg.mode.name in ("A", "B"):
+    from memrl.modes import mode_of
+
+    if demos is None and mode_of(cfg).needs_demos:
         demos = prior_knowledge(cfg)  # a bad dataset stops the run before its folder is made
     fresh = not cfg.resume
     before = set(run_dir.iterdir()) if run_dir.is_dir() else None

@@ -7,6 +7,7 @@ from tensordict import TensorDict
 
 from memrl.dqn.config import AgentConfig
 from memrl.dqn.learner import Learner
+from memrl.dqn.losses import MarginTerm, TDTerm
 
 
 def batch(n: int = 6, seed: int = 0) -> TensorDict:
@@ -79,7 +80,7 @@ def test_margin_loss_on_demo_items_matches_a_hand_computation():
     td = batch()
     td["is_demo"] = torch.tensor([True, False, True, False, False, True])
     base = learner.loss(td).detach()
-    learner.margin_weight, learner.margin = 2.0, 0.8
+    learner.start_stage((TDTerm(), MarginTerm(2.0, 0.8)))
     with torch.no_grad():
         q = learner.qnet(td["pixels"][td["is_demo"]])
         a = td["action"][td["is_demo"]]

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from memrl.dqn import checkpoint as ckpt
-from memrl.dqn.config import TrainConfigError
 from memrl.dqn.loop import Trainer
+from memrl.errors import UserError
 from memrl.train import train
 from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
 
@@ -298,12 +298,13 @@ def test_resume_needs_a_complete_checkpoint(compose_cfg, tmp_path):
 
 
 @pytest.mark.parametrize(("override", "key"), [("agent.gamma=1.5", "agent.gamma"),
-                                               ("mode.sampling=random", "mode.sampling"),
+                                               ("+mode=A mode.sampling=random", "mode.sampling"),
                                                ("agent.eps_start=0.01", "agent.eps_start"),
-                                               ("mode.stage1.lr=0", "mode.stage1.lr")])
+                                               ("+mode=B mode.stage1.lr=0", "mode.stage1.lr")])
 def test_bad_training_values_name_the_key(compose_cfg, tmp_path, override, key):
-    cfg = compose_cfg("train", TINY + [override])
-    with pytest.raises(TrainConfigError, match=key.replace(".", r"\.")):
+    """Each mode checks the keys it reads (memrl.modes), the agent's keys are checked always."""
+    cfg = compose_cfg("train", TINY + override.split())
+    with pytest.raises(UserError, match=f"config '{key.replace('.', '[.]')}'"):
         train(cfg, tmp_path)
 
 
@@ -452,7 +453,7 @@ def test_stage1_behaviour_criterion_stops_when_the_drives_reach_the_target(
 
 def test_stage1_behaviour_criterion_needs_drive_episodes(compose_cfg, tmp_path):
     cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=behaviour"])
-    with pytest.raises(TrainConfigError, match=r"mode\.stage1\.drive_episodes"):
+    with pytest.raises(UserError, match=r"mode\.stage1\.drive_episodes"):
         train(cfg, tmp_path)
 
 
@@ -509,14 +510,12 @@ def test_drive_check_counts_the_behaviour_in_its_own_scenes(compose_cfg):
 ])
 def test_each_stage_sets_its_own_margin_weight(compose_cfg, demos, mode, stage, overrides, weight):
     from memrl.dqn.builder import build_stage
-    from memrl.dqn.learner import Learner
+    from memrl.dqn.losses import MarginTerm, TDTerm
+    from memrl.modes import mode_of
 
     cfg = compose_cfg("train", TINY + [f"+mode={mode}", "mode.stage1.margin=0.6"] + overrides)
-    learner = Learner(cfg.agent)
-    learner.margin_weight = 99.0  # whatever the stage before it used
-    build_stage(stage, cfg, learner, demos, num_envs=1, device=torch.device("cpu"))
-    assert learner.margin_weight == weight
-    assert weight == 0 or learner.margin == 0.6
+    built = build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu"))
+    assert built.terms == ((TDTerm(),) if weight == 0 else (TDTerm(), MarginTerm(weight, 0.6)))
 
 
 def test_stage2_keeps_prior_knowledge_at_its_stratified_share(compose_cfg, tmp_path, demos):

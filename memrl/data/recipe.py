@@ -91,31 +91,3 @@ def recipe_hash(recipe: Any) -> str:
     """sha256 of the recipe's sorted JSON: part of the cached dataset's folder name."""
     text = json.dumps(recipe_values(recipe), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-# Here, beside recipe_values: checkpoints and report rows both need it, and this module imports no torch
-def used(config: dict[str, Any]) -> dict[str, Any]:
-    """``config`` without the ``mode`` keys the run never reads: a Default run reads only
-    ``mode.name``; an A run no stage key but ``mode.stage1.margin``; a B run not mode A's
-    ``demo_fraction`` and ``margin_weight``; an A or B run reads ``mode.example`` only where it
-    records its dataset from it (no ``mode.demos_path``). A setting a run never used cannot stop
-    it from resuming, nor split a report row."""
-    mode = config.get("mode")
-    if not isinstance(mode, dict):
-        return config
-    name = mode.get("name")
-    if name not in ("A", "B"):
-        return {**config, "mode": {"name": name}}
-    if name == "A":
-        stage1 = mode.get("stage1")
-        mode = {k: v for k, v in mode.items() if k not in ("stage1", "stage2")}
-        if isinstance(stage1, dict) and "margin" in stage1:  # the margin of A's margin loss
-            mode["stage1"] = {"margin": stage1["margin"]}
-    else:
-        mode = {k: v for k, v in mode.items() if k not in ("demo_fraction", "margin_weight")}
-    if "example" in mode:
-        if mode.get("demos_path") is None:  # compared as recorded
-            mode = {**mode, "example": recipe_values(mode["example"])}
-        else:
-            mode = {k: v for k, v in mode.items() if k != "example"}
-    return {**config, "mode": mode}

@@ -15,8 +15,9 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.data.recipe import LEGACY_RECIPE, used
+from memrl.data.recipe import LEGACY_RECIPE
 from memrl.errors import UserError
+from memrl.modes import used
 
 RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
                 "checkpoint_every", "log_every", "hydra", "device", "eval")

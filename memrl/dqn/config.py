@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 
 from memrl.data.recipe import DemoRecipe
 from memrl.errors import UserError
+from memrl.modes import mode_of
 
 PRECISIONS = ("auto", "float32", "bfloat16")
 EXPLORATIONS = ("epsilon", "ez_greedy", "speed_only", "boltzmann")  # memrl/dqn/exploration.py
@@ -76,6 +77,11 @@ class AgentConfig:
     FC head, Q-values and loss stay float32); ``auto``: bfloat16 where the CPU has native
     bf16 (oneDNN's check, e.g. AVX512-BF16 or AMX), else float32. Measured ~2x faster updates
     at batch 32 on such a CPU (``python -m memrl.bench learner``), same loss curve."""
+    augment_shift: int = 0
+    """DrQ-style random shifts of each sampled stack by up to this many pixels (0: off;
+    :mod:`memrl.dqn.augment`): replicate-padded, one offset per stack (its 4 frames move
+    together), independent for ``pixels`` and ``next.pixels``; sampled batches only, never
+    stored data or acting."""
     overlap: bool = True
     """Collect the next ``train_every`` env steps in a second thread while the learner updates
     (the batch is sampled first; the new steps join the buffer after the update). The acting
@@ -210,7 +216,7 @@ def _need(ok: bool, key: str, message: str) -> None:
 
 def check_train_config(cfg: DictConfig) -> None:
     """Check values that a schema's types cannot: ranges and choices; names the bad key."""
-    a, m = cfg.agent, cfg.mode
+    a = cfg.agent
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
     _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
     _need(str(a.get("precision", "auto")) in PRECISIONS, "agent.precision",
@@ -221,6 +227,8 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(0 <= a.eps_end <= a.eps_start <= 1, "agent.eps_start",
           f"need 0 <= eps_end <= eps_start <= 1, got {a.eps_start} -> {a.eps_end}")
     _need(a.eps_decay_frames >= 1, "agent.eps_decay_frames", "must be >= 1")
+    _need(0 <= a.augment_shift <= 20, "agent.augment_shift",
+          f"must be in [0, 20] pixels, got {a.augment_shift}")
     _need(str(a.get("exploration", "epsilon")) in EXPLORATIONS, "agent.exploration",
           f"expected one of {', '.join(EXPLORATIONS)}, got {a.get('exploration')!r}")
     _need(a.get("ez_mu", 2.0) > 0, "agent.ez_mu", f"must be > 0, got {a.get('ez_mu')}")
@@ -229,32 +237,11 @@ def check_train_config(cfg: DictConfig) -> None:
           "agent.temperature_start", "need 0 < temperature_end <= temperature_start")
     _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity",
           f"must be >= agent.batch_size ({a.batch_size}), got {cfg.buffer.capacity}")
-    _need(m.name in ("default", "A", "B"), "mode.name", f"expected default, A or B, got {m.name!r}")
-    _need(0 < m.demo_fraction < 1, "mode.demo_fraction", f"must be in (0, 1), got {m.demo_fraction}")
-    _need(m.sampling in ("stratified", "proportional"), "mode.sampling",
-          f"expected stratified or proportional, got {m.sampling!r}")
-    s1 = m.stage1
-    _need(s1.criterion in ("agreement", "plateau", "agreement_or_plateau", "behaviour", "max_updates"),
-          "mode.stage1.criterion", f"unknown criterion {s1.criterion!r}")
-    _need(s1.drive_episodes >= 0, "mode.stage1.drive_episodes", "must be >= 0")
-    _need(s1.criterion != "behaviour" or s1.drive_episodes >= 1, "mode.stage1.drive_episodes",
-          "criterion 'behaviour' needs drive episodes (>= 1)")
-    _need(0 < s1.drive_target <= 1, "mode.stage1.drive_target", "must be in (0, 1]")
-    _need(0 < s1.holdout_fraction < 1, "mode.stage1.holdout_fraction", "must be in (0, 1)")
-    _need(s1.max_updates >= 1 and s1.check_every >= 1, "mode.stage1.max_updates", "must be >= 1")
-    _need(s1.lr is None or s1.lr > 0, "mode.stage1.lr", f"must be > 0 or null, got {s1.lr}")
-    s2 = m.stage2
-    _need(0 <= s2.eps_end <= s2.eps_start <= 1, "mode.stage2.eps_start",
-          "need 0 <= eps_end <= eps_start <= 1")
-    _need(0 <= s2.demo_fraction < 1, "mode.stage2.demo_fraction",
-          f"must be in [0, 1), got {s2.demo_fraction}")
-    for key, weight in (("mode.margin_weight", m.get("margin_weight", 0.0)),
-                        ("mode.stage1.margin_weight", s1.margin_weight),
-                        ("mode.stage2.margin_weight", s2.get("margin_weight", 0.0))):
-        _need(weight >= 0, key, f"must be >= 0, got {weight}")
+    spec = mode_of(cfg)  # an unknown mode.name is refused here
+    spec.check(cfg)
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")
-    share = {"A": m.demo_fraction, "B": m.stage2.get("demo_fraction", 0.0)}.get(m.name, 0.0)
+    share = max([float(st.demo_share(cfg)) for st in spec.stages if not st.offline(cfg)], default=0.0)
     agent_part = int(cfg.buffer.capacity) - int(round(float(share) * int(cfg.buffer.capacity)))
     n_envs = int(cfg.env.get("num_envs", 1))
     _need(agent_part >= n_envs, "env.num_envs",

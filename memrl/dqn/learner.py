@@ -10,7 +10,9 @@ from tensordict import TensorDictBase
 from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate
 
+from memrl.dqn.augment import shift_batch
 from memrl.dqn.config import AgentConfig
+from memrl.dqn.losses import LossTerm, TDTerm
 from memrl.modules.qnet import QNetwork, make_q_actor
 
 
@@ -63,13 +65,25 @@ def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32),
 class Learner:
     """Online/target Q-networks, optimizer and update step.
 
-    The loss is eq. (1): the mean of 1/2 (r + gamma Q_target(s', argmax_a Q(s', a)) - Q(s, a))^2,
-    with no bootstrap on terminated transitions. TorchRL's ``l2`` distance has no 1/2; the
-    update multiplies it by 0.5.
+    The loss is the sum of the current stage's terms (:mod:`memrl.dqn.losses`; by default
+    eq. (1) alone), on the sampled batch shifted by ``agent.augment_shift`` pixels when set.
+    A stage change (:meth:`start_stage`) sets the terms and the optimizer; nothing else
+    changes the learner.
+
+    Args:
+        cfg: the ``agent`` config.
+        device: where the networks and the optimizer live.
+        terms: the loss terms of the first stage.
+        seed: seed of the learner's own generator (image shifts), so that shifts do not depend
+            on what the acting thread draws meanwhile.
     """
 
-    def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu") -> None:
+    def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu",
+                 terms: tuple[LossTerm, ...] = (TDTerm(),), seed: int = 0) -> None:
         self.cfg, self.device = cfg, torch.device(device)
+        self.terms = tuple(terms)
+        self.augment_shift = int(_option(cfg, "augment_shift", 0))
+        self.shift_generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)))
         self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
@@ -93,25 +107,30 @@ class Learner:
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.lr)
         self.updates = 0
 
-    margin_weight: float = 0.0
-    """Weight of the large-margin loss on demo transitions (0: eq. (1) only); set per stage."""
-    margin: float = 0.8
-    """Margin [Q units] by which the demo action must beat every other action."""
-
     def loss(self, batch: TensorDictBase) -> torch.Tensor:
-        """Eq. (1) on a batch (differentiable), plus, when ``margin_weight > 0``, DQfD's
-        large-margin loss on its demo items: max_a [Q(s, a) + margin * (a != a_demo)] - Q(s, a_demo)
-        (Hester et al., 2018), which makes the greedy action reproduce the demonstrations."""
-        loss = 0.5 * self.loss_module(batch)["loss"]
-        if self.margin_weight > 0 and "is_demo" in batch.keys():
-            demo = batch["is_demo"].reshape(-1)
-            if bool(demo.any()):
-                q = self.qnet(batch["pixels"][demo])
-                a = batch["action"][demo].reshape(-1, 1)
-                margins = torch.full_like(q, self.margin).scatter_(-1, a, 0.0)
-                excess = (q + margins).max(-1).values - q.gather(-1, a).squeeze(-1)
-                loss = loss + self.margin_weight * excess.mean()
-        return loss
+        """The stage's loss on a batch (differentiable): the sum of its terms, in their order,
+        on the batch shifted by ``augment_shift`` pixels (when > 0)."""
+        if self.augment_shift > 0:
+            batch = shift_batch(batch, self.augment_shift, self.shift_generator)
+        total: torch.Tensor | None = None
+        for term in self.terms:
+            value = term(batch, self.loss_module, self.qnet)
+            if value is not None:
+                total = value if total is None else total + value
+        if total is None:
+            raise ValueError(f"no loss term applies to this batch (terms: {[t.name for t in self.terms]})")
+        return total
+
+    def start_stage(self, terms: tuple[LossTerm, ...], lr: float | None = None,
+                    fresh_optimizer: bool = False) -> None:
+        """Begin a stage: its loss terms, a fresh Adam at ``agent.lr`` when ``fresh_optimizer``,
+        then its own learning rate ``lr`` when given (None: keep the optimizer's)."""
+        self.terms = tuple(terms)
+        if fresh_optimizer:
+            self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)
+        if lr is not None:
+            for group in self.optimizer.param_groups:
+                group["lr"] = lr
 
     def update(self, batch: TensorDictBase) -> float:
         """One gradient step and a target-update tick; returns the loss value."""
@@ -152,21 +171,17 @@ class Learner:
         return self.qnet(pixels)
 
     def state_dict(self) -> dict[str, Any]:
-        return {"loss_module": self.loss_module.state_dict(),
-                "optimizer": self.optimizer.state_dict(), "updates": self.updates,
-                "target_updater": self.target_updater.state_dict()}
+        state = {"loss_module": self.loss_module.state_dict(),
+                 "optimizer": self.optimizer.state_dict(), "updates": self.updates,
+                 "target_updater": self.target_updater.state_dict()}
+        if self.augment_shift > 0:
+            state["shift_generator"] = self.shift_generator.get_state()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.loss_module.load_state_dict(state["loss_module"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.target_updater.load_state_dict(state["target_updater"])
         self.updates = int(state["updates"])
-
-    def set_lr(self, lr: float) -> None:
-        """Learning rate of the current optimizer (mode B stage 1 may use its own)."""
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
-
-    def reset_optimizer(self) -> None:
-        """Fresh Adam moments (mode B stage 2 starts a new optimisation)."""
-        self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)
+        if "shift_generator" in state:
+            self.shift_generator.set_state(state["shift_generator"])

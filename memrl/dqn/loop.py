@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from memrl.checkpoint import save_qnet, stage1_source
 from memrl.dqn import checkpoint as ckpt
-from memrl.dqn.builder import FIRST_STAGE, NEXT_STAGE, Stage, build_stage
+from memrl.dqn.builder import Stage, build_stage
 from memrl.dqn.collector import Collector, EpisodeEnd, Steps
 from memrl.dqn.learner import Learner
 from memrl.dqn.overlap import RoundRunner
@@ -41,6 +41,7 @@ from memrl.dqn.stage1 import Stage1Checks, Stage1Progress
 from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
+from memrl.modes import mode_of
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +58,7 @@ class Counters:
     """Update rounds of the env stages taken so far (see :class:`UpdateSchedule`)."""
     update_rows: int = 0
     stage: str = "default"
-    """default | A | B1 (prior knowledge only) | B2 (plain double DQN from B1's weights)."""
+    """The current stage's name (:mod:`memrl.modes`: default | A | B1 | B2 | ...)."""
 
 
 @dataclass
@@ -95,8 +96,9 @@ class Trainer:
     def __init__(self, cfg: DictConfig, out_dir: Path, demos: TensorDictBase | None = None,
                  logger: Any | None = None) -> None:
         self.cfg, self.out_dir, self.demos = cfg, out_dir, demos
-        self.mode = cfg.mode.name
-        if self.mode in ("A", "B") and demos is None:
+        self.spec = mode_of(cfg)
+        self.mode = self.spec.name
+        if self.spec.needs_demos and demos is None:
             raise ValueError(f"mode {self.mode} needs prior knowledge (demos)")
         if cfg.agent.threads:
             torch.set_num_threads(int(cfg.agent.threads))
@@ -105,8 +107,8 @@ class Trainer:
         self.device = resolve_device(cfg.get("device", "cpu"))
         self.num_envs = int(cfg.env.get("num_envs", 1))
         self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed))
-        self.learner = Learner(cfg.agent, self.device)
-        self.rounds = RoundRunner(self.learner, bool(cfg.agent.get("overlap", False)),
+        self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed))
+        self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),
                                   int(cfg.agent.threads))
         self.schedule = UpdateSchedule(int(cfg.agent.train_every), int(cfg.agent.warmup_frames),
                                        int(cfg.agent.updates_per_round))
@@ -115,7 +117,7 @@ class Trainer:
                                       self.collector.learned_controller(), out_dir, cfg.env)
         self.records = RunRecords(out_dir, logger, echo=not cfg.progress)
         self.periodic = PeriodicEvaluation(cfg.get("eval"), cfg.env, out_dir, self.records.log)
-        self.counters = Counters(stage=FIRST_STAGE[self.mode])
+        self.counters = Counters(stage=self.spec.stages[0].name)
         self.stage1 = Stage1Progress()
         self._set_stage(self.counters.stage)
         self._acc: dict[str, list[float]] = {"loss": [], "demo": []}
@@ -162,7 +164,7 @@ class Trainer:
         """
         checks, p = self.stage1_checks, self.stage1
         assert checks is not None
-        if (init := self.cfg.mode.stage1.get("init")) is not None:
+        if (init := self._offline_settings.init) is not None:
             self._stage1_from(stage1_source(str(init), self.cfg.env))
             return
         while not p.done:
@@ -172,7 +174,7 @@ class Trainer:
             if after_update is not None:
                 after_update(p.updates)
             if checks.due():
-                recent = list(self._losses)[-int(self.cfg.mode.stage1.check_every):]
+                recent = list(self._losses)[-int(self._offline_settings.check_every):]
                 metrics = checks.check(self.learner.qnet, self.learner.loss_module, recent)
                 self._log_updates()  # every check gets its row
                 self.records.stage1_check(p.updates, metrics)
@@ -231,15 +233,22 @@ class Trainer:
             self.num_envs > 1 or self.collector.between_episodes())
 
     # ------------------------------------------------------------------ stages
-    def _set_stage(self, name: str) -> None:
-        """Build stage ``name``: its buffer, exploration, loss settings and acting policy."""
+    def _set_stage(self, name: str, fresh_optimizer: bool = False) -> None:
+        """Build stage ``name``: its buffer, exploration and acting policy; start the learner
+        on its loss terms (and a fresh optimizer when it begins a new optimisation)."""
         self.counters.stage = name
-        self.stage: Stage = build_stage(name, self.cfg, self.learner, self.demos, self.num_envs,
+        self.stage: Stage = build_stage(self.spec.stage(name), self.cfg, self.demos, self.num_envs,
                                         self.device)
-        self.stage1_checks = Stage1Checks(self.cfg.mode.stage1, self.cfg.env, self.stage.held_out,
+        self.learner.start_stage(self.stage.terms, self.stage.lr, fresh_optimizer)
+        self.stage1_checks = Stage1Checks(self._offline_settings, self.cfg.env, self.stage.held_out,
                                           self.stage1) if self.stage.offline else None
         self.acting: TensorDictSequential | None = None if self.stage.offline else TensorDictSequential(
             self.rounds.acting_net, self.stage.explore)
+
+    @property
+    def _offline_settings(self) -> Any:
+        """The ``mode`` node of the current offline stage's stop rule (``mode.stage1``)."""
+        return self.cfg.mode[self.stage.spec.settings]
 
     def _stage1_from(self, file: Path) -> None:
         """Stage 1 done elsewhere (``mode.stage1.init``): its weights and record, then the switch."""
@@ -261,8 +270,9 @@ class Trainer:
         torch.save({"loss_module": self.learner.loss_module.state_dict(),
                     "stage1": dataclasses.asdict(self.stage1)}, path)
         self.learner.sync_target()
-        self.learner.reset_optimizer()
-        self._set_stage(NEXT_STAGE[self.counters.stage])
+        following = self.spec.next_stage(self.counters.stage)
+        assert following is not None, "an offline stage is followed by the stage it trains for"
+        self._set_stage(following.name, following.fresh_optimizer)
         self.rounds.sync()
         log.info("stage 1 done (%s); stage 2 from %s", self.stage1.stop_reason, path)
 
@@ -293,7 +303,7 @@ class Trainer:
             "updates_per_s": (c.updates - self._updates0) / wall,
             "frames_per_s": (c.frames - self._frames0) / wall,
             "epsilon": self._epsilon(),
-        })
+        }, offline=self.stage.offline)
         c.update_rows += 1
         self._acc = {"loss": [], "demo": []}
 
@@ -350,8 +360,9 @@ class Trainer:
         where = ckpt.find(run_dir)
         state = ckpt.load_state(where, self.cfg)
         counters = dict(state["counters"])
-        counters.setdefault("rounds", self.schedule.rounds_due(counters["frames"])  # older format
-                            if counters["stage"] != "B1" else 0)
+        offline = self.spec.stage(counters["stage"]).offline(self.cfg)
+        counters.setdefault("rounds", 0 if offline  # older format
+                            else self.schedule.rounds_due(counters["frames"]))
         self.counters = Counters(**counters)
         self.stage1 = Stage1Progress(**state["stage1"])
         self.learner.load_state_dict(state["learner"])
@@ -369,7 +380,7 @@ class Trainer:
         self.self_play.restore(self.counters.episodes)  # before the engine: its pool size
         if state.get("collector") is not None:  # None: made in stage 1, the collector not started yet
             self.collector.load_state_dict(state["collector"])
-        elif self.counters.stage != "B1":  # older format: single-env runs saved between episodes
+        elif not self.stage.offline:  # older format: single-env runs saved between episodes
             self.collector.load_state_dict({"started": self.counters.episodes,
                                             "pending": torch.ones(self.num_envs, dtype=torch.bool)})
         self._acc = state["acc"]

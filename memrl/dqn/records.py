@@ -58,9 +58,11 @@ class RunRecords:
         self.episodes.append(row)
         self._points("episode", row, EPISODE_METRICS, int(row["env_steps"]))
 
-    def update(self, row: dict[str, Any]) -> None:
+    def update(self, row: dict[str, Any], offline: bool = False) -> None:
+        """A row of ``updates.csv``; its logger points go under ``stage1/`` at its updates for
+        an offline stage (no env steps), else under ``train/`` at its env steps."""
         self.updates.append(row)
-        if row["stage"] == "B1":
+        if offline:
             self._points("stage1", row, UPDATE_METRICS, int(row["updates"]))
         else:
             self._points("train", row, UPDATE_METRICS, int(row["env_steps"]))

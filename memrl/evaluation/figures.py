@@ -24,6 +24,7 @@ from matplotlib.figure import Figure
 from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.policies import run_config, run_label
 from memrl.evaluation.rows import row_rank
+from memrl.modes import MODES
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +232,7 @@ def stage_switch(runs: list[Curves], stage1: dict[str, list[tuple[float, float]]
             seed's stage-1 weights.
         final: the same for the final weights.
     """
-    b = [r for r in runs if r.mode == "B" and r.periodic]
+    b = [r for r in runs if r.mode in MODES and MODES[r.mode].pretrains and r.periodic]
     if not b:
         log.info("stage-switch figure: no mode B run with a periodic evaluation; skipped")
         return None

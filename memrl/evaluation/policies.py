@@ -31,13 +31,12 @@ from memrl.checkpoint import load_qnet
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
+from memrl.modes import MODES
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
 from memrl.modules.qnet import QNetwork
 
 log = logging.getLogger(__name__)
 
-MODE_LABELS = {"default": "Default", "A": "A", "B": "B"}
-"""Table III row label of each training mode."""
 
 
 class GreedyActor(Actor):
@@ -171,7 +170,8 @@ def run_label(cfg: dict[str, Any]) -> str:
     opponent = (cfg.get("env") or {}).get("opponent", "constant")
     traffic = opponent.get("type", "constant") if isinstance(opponent, dict) else str(opponent)
     variant = cfg.get("variant")
-    return row_label(MODE_LABELS.get(mode, mode), str(traffic), str(variant) if variant else None)
+    label = MODES[mode].label if mode in MODES else mode  # the mode's own Table III label
+    return row_label(label, str(traffic), str(variant) if variant else None)
 
 
 class CheckpointSource(PolicySource):

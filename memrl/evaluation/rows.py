@@ -21,8 +21,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from memrl.data.recipe import used
 from memrl.evaluation.results import EvalResult
+from memrl.modes import used
 
 IGNORED_KEYS = ("seed", "progress", "resume", "paths", "logger", "log_every", "checkpoint_every",
                 "hydra", "task_name", "debug", "variant", "mode.stage1.init", "eval")

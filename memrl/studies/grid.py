@@ -23,13 +23,12 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl.modes import by_label
 from memrl.workers import die_with_parent
 
 log = logging.getLogger(__name__)
 
 CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
-MODE_OVERRIDES = {"Default": [], "A": ["+mode=A"], "B": ["+mode=B"]}
-"""Train overrides of each mode of ``study.modes``."""
 CELL_DEFAULTS = ["progress=false"]
 """Overrides of every cell before the user's (no progress bars from parallel runs)."""
 
@@ -99,7 +98,7 @@ def cells(study: DictConfig, runs_dir: Path) -> list[Cell]:
         for mode in study.modes:
             for opponent in opponents:
                 for seed in study.seeds:
-                    grid = [*MODE_OVERRIDES[str(mode)], *([f"opponent={opponent}"] if opponent else []),
+                    grid = [*by_label(str(mode)).overrides, *([f"opponent={opponent}"] if opponent else []),
                             f"seed={int(seed)}", *([f"variant='{variant}'"] if variant else [])]
                     overrides = [*CELL_DEFAULTS, *user, *extra, *grid]
                     cfg = compose_config("train", overrides)

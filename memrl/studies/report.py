@@ -23,6 +23,7 @@ from omegaconf import OmegaConf
 from memrl.evaluation import stats, tables
 from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.results import EvalResult
+from memrl.modes import MODES, by_label
 from memrl.studies.evaluation import STAGE1_SUFFIX
 from memrl.studies.grid import Cell
 from memrl.studies.traffic import traffic_section
@@ -51,6 +52,11 @@ class ReportInputs:
     wall_s: float
     variants: dict[str, list[str]] = field(default_factory=dict)
     """``study.variants``: name -> its train overrides ({}: none)."""
+
+
+def _pretrains(mode: object) -> bool:
+    """Whether runs of mode name ``mode`` have an offline stage (their stage-1 weights)."""
+    return str(mode) in MODES and MODES[str(mode)].pretrains
 
 
 def cpu_model() -> str:
@@ -135,7 +141,7 @@ def budget(cells: Sequence[Cell], finished: Sequence[Cell]) -> list[str]:
              f"- measured per run ({len(sums)} runs): env steps {span('frames')}, episodes "
              f"{span('episodes')}, updates {span('updates')}, training wall {_span(known, ' s')}"
              f"{_unknown(len(walls) - len(known))}"]
-    s1 = [s["stage1"]["updates"] for s in sums if s.get("mode") == "B" and s.get("stage1")]
+    s1 = [s["stage1"]["updates"] for s in sums if _pretrains(s.get("mode")) and s.get("stage1")]
     if s1:
         lines.append(f"- mode B stage 1: {_span(s1)} updates on the prior knowledge (no env steps)")
     return lines
@@ -354,12 +360,12 @@ def stage_figure(finished: Sequence[Cell], runs: Sequence[EvalResult], stage1: S
     def scores(results: Sequence[EvalResult], suffix: str = "") -> dict[str, list[tuple[float, float]]]:
         out: dict[str, list[tuple[float, float]]] = {}
         for r in results:
-            if "non_goal" in r.scores and r.meta.get("mode") == "B":
+            if "non_goal" in r.scores and _pretrains(r.meta.get("mode")):
                 s = r.scores["non_goal"]
                 out.setdefault(r.name.removesuffix(suffix), []).append((s.survival_score, s.goal_score))
         return out
 
-    b_runs = [c.run_dir for c in finished if c.mode == "B"]
+    b_runs = [c.run_dir for c in finished if by_label(c.mode).pretrains]
     if not b_runs:
         return None
     return stage_switch(find_training_runs(b_runs), scores(stage1, STAGE1_SUFFIX), scores(runs), path,

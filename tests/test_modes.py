@@ -1,0 +1,143 @@
+"""Modes as declared units: a toy mode added from this file alone trains and resumes exactly;
+the paper's modes are declared once and everything else asks the registry."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hydra.core.config_store import ConfigStore
+
+from memrl.dqn import checkpoint as ckpt
+from memrl.dqn.loop import Trainer
+from memrl.dqn.losses import MarginTerm
+from memrl.modes import MODES, ModeSpec, StageSpec, by_label, register_mode, used
+from memrl.schemas import STUDY_MODES
+from memrl.train import train
+from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
+
+
+class Killed(Exception):
+    pass
+
+
+@pytest.fixture
+def toy_mode():
+    """``toy``: one online stage whose buffer keeps half of it for the prior knowledge, with a
+    margin term of weight 1 and its own epsilon schedule. Its config and its stage list are
+    all there is to it."""
+    spec = register_mode(ModeSpec(
+        "toy", "Toy",
+        (StageSpec("toy_online", demo_share=lambda cfg: 0.5,
+                   terms=lambda cfg: (MarginTerm(1.0, 0.5),),
+                   exploration=lambda cfg: (0.5, 0.05, 300)),),
+        reads=("name", "demos_path", "example", "sampling")))
+    ConfigStore.instance().store(group="mode", name="toy", node={"name": "toy"})
+    yield spec
+    del MODES["toy"]
+
+
+def test_a_toy_mode_from_this_file_trains_and_resumes_after_a_kill(compose_cfg, tmp_path, demos,
+                                                                   monkeypatch, toy_mode):
+    extra = ["+mode=toy", "total_episodes=6", "checkpoint_every=2"]
+    cfg = compose_cfg("train", TINY + extra)
+    full = train(cfg, tmp_path / "full", demos=demos)
+    assert full.mode == "toy" and full.stage == "toy_online"
+    updates = csv_rows(tmp_path / "full" / "updates.csv")
+    # the stage's recipe: exactly half of each batch of 8 is prior knowledge (stratified)
+    assert updates and {(r["demo_count_min"], r["demo_count_max"]) for r in updates} == {("4", "4")}
+    assert {r["stage"] for r in csv_rows(tmp_path / "full" / "episodes.csv")} == {"toy_online"}
+    # its epsilon schedule: 0.5 at the start, down to 0.05 after 300 env steps
+    first = csv_rows(tmp_path / "full" / "episodes.csv")[0]
+    assert 0.05 < float(first["epsilon"]) <= 0.5
+
+    original = Trainer._episodes_done
+
+    def dying(self, ends):
+        original(self, ends)
+        if self.counters.episodes == 5:
+            raise Killed("simulated kill")
+
+    monkeypatch.setattr(Trainer, "_episodes_done", dying)
+    with pytest.raises(Killed):
+        train(cfg, tmp_path / "cut", demos=demos)
+    monkeypatch.setattr(Trainer, "_episodes_done", original)
+    resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
+    assert resumed.resumed_from_episode == 4
+    for key in ("frames", "episodes", "updates", "stage"):
+        assert getattr(resumed, key) == getattr(full, key), key
+    assert csv_rows(tmp_path / "cut" / "episodes.csv") == csv_rows(tmp_path / "full" / "episodes.csv")
+    assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
+    # what the run reads is what the mode declares: other modes' keys are not part of it
+    assert set(used(ckpt.comparable(cfg))["mode"]) == {"name", "demos_path", "example", "sampling"}
+
+
+def test_the_toy_mode_needs_prior_knowledge_and_names_its_row(toy_mode):
+    assert toy_mode.needs_demos and not toy_mode.pretrains
+    assert toy_mode.overrides == ("+mode=toy",) and by_label("Toy") is toy_mode
+
+
+def test_the_paper_modes_are_declared_once():
+    assert [m.label for m in MODES.values()][:3] == list(STUDY_MODES)
+    assert [s.name for s in MODES["B"].stages] == ["B1", "B2"]
+    assert MODES["B"].pretrains and not MODES["A"].pretrains and not MODES["default"].needs_demos
+    assert MODES["B"].next_stage("B1") is MODES["B"].stages[1]
+    assert MODES["B"].stages[1].fresh_optimizer and not MODES["A"].stages[0].fresh_optimizer
+    with pytest.raises(ValueError, match="taken by another mode"):
+        register_mode(ModeSpec("other", "Other", (StageSpec("B1"),)))
+
+
+def test_an_unknown_mode_is_refused_naming_the_key(compose_cfg, tmp_path):
+    from memrl.errors import UserError
+
+    cfg = compose_cfg("train", TINY)
+    cfg.mode.name = "nope"
+    with pytest.raises(UserError, match="config 'mode.name': unknown mode 'nope'"):
+        train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_augment_shift_moves_a_stack_as_one_within_its_bound():
+    from memrl.dqn.augment import random_shift
+
+    gen = torch.Generator().manual_seed(0)
+    # each frame of a stack is a ramp along one axis plus its frame index: a shift by (dy, dx)
+    # reads, inside the image, value(y + dy - s, x + dx - s); the border repeats
+    y = torch.arange(84).view(84, 1).expand(84, 84)
+    x = torch.arange(84).view(1, 84).expand(84, 84)
+    base = torch.stack([(y + 100 * (f % 2)) for f in range(4)]).to(torch.uint8)  # rows
+    cols = torch.stack([(x + 100 * (f % 2)) for f in range(4)]).to(torch.uint8)
+    batch = torch.stack([base] * 16 + [cols] * 16)  # [32, 4, 84, 84]
+    s = 4
+    out = random_shift(batch, s, gen)
+    assert out.shape == batch.shape and out.dtype == torch.uint8
+    seen = set()
+    for i in range(32):
+        # the shift read from the middle pixel, the same for all 4 frames of the stack
+        d = [int(out[i, f, 42, 42]) - int(batch[i, f, 42, 42]) for f in range(4)]
+        assert len(set(d)) == 1 and -s <= d[0] <= s
+        seen.add(d[0])
+        axis_ramp = (base if i < 16 else cols)[0].to(torch.int64)
+        want = (axis_ramp + d[0]).clamp(0, 83)  # interior values, the border replicated
+        assert torch.equal(out[i, 0].to(torch.int64), want)
+    assert len(seen) > 3  # offsets vary between stacks
+    assert torch.equal(random_shift(batch, 0, gen), batch)
+
+
+def test_augment_shifts_sampled_batches_only_and_resumes_exactly(compose_cfg, tmp_path, demos):
+    """With shifts the loss differs from the unshifted one; two runs of one seed are equal
+    (the learner's own generator), and the stored transitions are never shifted."""
+    from memrl.dqn.learner import Learner
+
+    cfg = compose_cfg("train", TINY + ["agent.augment_shift=4"])
+    learner = Learner(cfg.agent, seed=0)
+    batch = demos[:8].clone()
+    plain = Learner(compose_cfg("train", TINY).agent, seed=0)
+    plain.loss_module.load_state_dict(learner.loss_module.state_dict())
+    before = batch["pixels"].clone()
+    assert not torch.equal(learner.loss(batch), plain.loss(batch))
+    assert torch.equal(batch["pixels"], before)
+    a = train(cfg, tmp_path / "a", demos=demos)
+    b = train(cfg, tmp_path / "b", demos=demos)
+    assert a.updates == b.updates > 0
+    losses = [[r["loss"] for r in csv_rows(tmp_path / run / "updates.csv")] for run in ("a", "b")]
+    assert losses[0] == losses[1] and len(losses[0]) > 1
