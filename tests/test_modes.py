@@ -141,3 +141,62 @@ def test_augment_shifts_sampled_batches_only_and_resumes_exactly(compose_cfg, tm
     assert a.updates == b.updates > 0
     losses = [[r["loss"] for r in csv_rows(tmp_path / run / "updates.csv")] for run in ("a", "b")]
     assert losses[0] == losses[1] and len(losses[0]) > 1
+
+
+SHORT = ["total_frames=null", "total_episodes=2", "env.duration=30", "agent.warmup_frames=20",
+         "agent.batch_size=8", "buffer.capacity=400", "checkpoint_every=1", "progress=false",
+         "logger=none", "log_every=5", "mode.stage1.max_updates=12", "mode.stage1.check_every=4",
+         "mode.stage1.criterion=agreement_or_plateau", "mode.stage1.drive_episodes=0"]
+
+
+def reference_margin_weight(cfg, stage: str) -> float:
+    """The margin weight each stage used before modes were declared (the old builder's rule)."""
+    m = cfg.mode
+    return {"default": 0.0, "A": float(m.margin_weight), "B1": float(m.stage1.margin_weight),
+            "B2": float(m.stage2.margin_weight) if m.stage2.demo_fraction > 0 else 0.0}[stage]
+
+
+@pytest.mark.parametrize("preset", [["+experiment=smoke"], ["+experiment=paper"]])
+@pytest.mark.parametrize("mode", [None, "A", "B"])
+def test_the_stage_losses_equal_the_formula_before_loss_terms(compose_cfg, tmp_path, demos, monkeypatch,
+                                                             preset, mode):
+    """Today's defaults and the paper preset: every update's loss equals 1/2 TorchRL's l2
+    double-DQN loss plus the old builder's margin weight times DQfD's margin loss, recomputed
+    from the weights before the update on the same batch (bit for bit)."""
+    from memrl.dqn.learner import Learner
+
+    cfg = compose_cfg("train", preset + SHORT + ([f"+mode={mode}"] if mode else []))
+    seen: list[tuple[str, dict, object, float]] = []
+    original = Learner._update
+
+    def spy(self, batch):
+        weights = {k: v.clone() for k, v in self.loss_module.state_dict().items()}
+        loss = original(self, batch)
+        if len(seen) < 40:
+            seen.append((trainer_stage[0], weights, batch.clone(), loss))
+        return loss
+
+    trainer_stage = ["?"]
+    original_set = Trainer._set_stage
+
+    def set_stage(self, name, fresh_optimizer=False):
+        trainer_stage[0] = name
+        original_set(self, name, fresh_optimizer)
+
+    monkeypatch.setattr(Learner, "_update", spy)
+    monkeypatch.setattr(Trainer, "_set_stage", set_stage)
+    train(cfg, tmp_path, demos=demos)
+    assert {s for s, *_ in seen} == ({"B1", "B2"} if mode == "B" else {mode or "default"})
+    reference = Learner(cfg.agent)
+    for stage, weights, batch, loss in seen:
+        reference.loss_module.load_state_dict(weights)
+        with torch.no_grad():
+            expected = 0.5 * reference.loss_module(batch)["loss"]
+            w = reference_margin_weight(cfg, stage)
+            demo = batch["is_demo"].reshape(-1)
+            if w > 0 and bool(demo.any()):
+                q = reference.qnet(batch["pixels"][demo])
+                a = batch["action"][demo].reshape(-1, 1)
+                margins = torch.full_like(q, float(cfg.mode.stage1.margin)).scatter_(-1, a, 0.0)
+                expected = expected + w * ((q + margins).max(-1).values - q.gather(-1, a).squeeze(-1)).mean()
+        assert float(expected) == loss, stage

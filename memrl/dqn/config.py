@@ -219,9 +219,9 @@ def check_train_config(cfg: DictConfig) -> None:
     a = cfg.agent
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
     _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
-    _need(str(a.get("precision", "auto")) in PRECISIONS, "agent.precision",
+    _need(str(a.precision) in PRECISIONS, "agent.precision",
           f"must be one of {sorted(PRECISIONS)}")
-    _need(a.get("threads", 0) >= 0, "agent.threads", f"must be >= 0, got {a.get('threads')}")
+    _need(a.threads >= 0, "agent.threads", f"must be >= 0, got {a.threads}")
     for key in ("batch_size", "target_update_interval", "train_every", "updates_per_round"):
         _need(a[key] >= 1, f"agent.{key}", f"must be >= 1, got {a[key]}")
     _need(0 <= a.eps_end <= a.eps_start <= 1, "agent.eps_start",
@@ -229,11 +229,11 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(a.eps_decay_frames >= 1, "agent.eps_decay_frames", "must be >= 1")
     _need(0 <= a.augment_shift <= 20, "agent.augment_shift",
           f"must be in [0, 20] pixels, got {a.augment_shift}")
-    _need(str(a.get("exploration", "epsilon")) in EXPLORATIONS, "agent.exploration",
-          f"expected one of {', '.join(EXPLORATIONS)}, got {a.get('exploration')!r}")
-    _need(a.get("ez_mu", 2.0) > 0, "agent.ez_mu", f"must be > 0, got {a.get('ez_mu')}")
-    _need(a.get("ez_max_duration", 50) >= 1, "agent.ez_max_duration", "must be >= 1")
-    _need(0 < a.get("temperature_end", 0.05) <= a.get("temperature_start", 1.0),
+    _need(str(a.exploration) in EXPLORATIONS, "agent.exploration",
+          f"expected one of {', '.join(EXPLORATIONS)}, got {a.exploration!r}")
+    _need(a.ez_mu > 0, "agent.ez_mu", f"must be > 0, got {a.ez_mu}")
+    _need(a.ez_max_duration >= 1, "agent.ez_max_duration", "must be >= 1")
+    _need(0 < a.temperature_end <= a.temperature_start,
           "agent.temperature_start", "need 0 < temperature_end <= temperature_start")
     _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity",
           f"must be >= agent.batch_size ({a.batch_size}), got {cfg.buffer.capacity}")

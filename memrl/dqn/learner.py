@@ -16,11 +16,6 @@ from memrl.dqn.losses import LossTerm, TDTerm
 from memrl.modules.qnet import QNetwork, make_q_actor
 
 
-def _option(cfg: Any, key: str, default: Any) -> Any:
-    """``cfg.key`` for a dataclass or a DictConfig that may predate the key."""
-    return getattr(cfg, key, default) if not hasattr(cfg, "get") else cfg.get(key, default)
-
-
 def conv_dtype(precision: str) -> torch.dtype | None:
     """The Q-network's conv trunk dtype for ``agent.precision`` (None: float32)."""
     if precision == "bfloat16":
@@ -82,20 +77,20 @@ class Learner:
                  terms: tuple[LossTerm, ...] = (TDTerm(),), seed: int = 0) -> None:
         self.cfg, self.device = cfg, torch.device(device)
         self.terms = tuple(terms)
-        self.augment_shift = int(_option(cfg, "augment_shift", 0))
+        self.augment_shift = int(cfg.augment_shift)
         self.shift_generator = torch.Generator(device=self.device).manual_seed(int(seed))
-        self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)))
+        self.actor: QValueActor = make_q_actor(pool_first=bool(cfg.pool_first))
         self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
-        precision = str(_option(cfg, "precision", "float32"))
+        precision = str(cfg.precision)
         # bf16 autocast is a CPU speed-up (oneDNN); on CUDA `auto` keeps float32
         self.qnet.conv_dtype = conv_dtype(precision) if self.device.type == "cpu" or \
             precision != "auto" else None
-        if _option(cfg, "channels_last", False):
+        if cfg.channels_last:
             # Before DQNLoss copies the parameters: online and target weights, and Adam's
             # moments, all stay channels_last (NHWC convs and pools run faster on CPU).
             self.qnet.to(memory_format=torch.channels_last)
-        self.compiled = bool(_option(cfg, "compile", False)) and compile_qnet(
+        self.compiled = bool(cfg.compile) and compile_qnet(
             self.qnet, (1, int(cfg.batch_size)), self.device)
         self.loss_module = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                                    double_dqn=True, action_space="categorical")

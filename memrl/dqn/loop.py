@@ -104,7 +104,7 @@ class Trainer:
             torch.set_num_threads(int(cfg.agent.threads))
         torch.manual_seed(int(cfg.seed))
         np.random.seed(int(cfg.seed) % 2**32)
-        self.device = resolve_device(cfg.get("device", "cpu"))
+        self.device = resolve_device(cfg.device)
         self.num_envs = int(cfg.env.get("num_envs", 1))
         self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed))
         self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed))
@@ -116,7 +116,7 @@ class Trainer:
         self.self_play = SelfPlayPool(int(cfg.self_play_every or 0),
                                       self.collector.learned_controller(), out_dir, cfg.env)
         self.records = RunRecords(out_dir, logger, echo=not cfg.progress)
-        self.periodic = PeriodicEvaluation(cfg.get("eval"), cfg.env, out_dir, self.records.log)
+        self.periodic = PeriodicEvaluation(cfg.eval, cfg.env, out_dir, self.records.log)
         self.counters = Counters(stage=self.spec.stages[0].name)
         self.stage1 = Stage1Progress()
         self._set_stage(self.counters.stage)
