@@ -392,6 +392,8 @@ class LearnerBench:
     buffer_transitions: int = spec(ge=1)
     ablation: bool = MISSING
     seed: int = spec(ge=0, le=SEED_MAX)
+    learning: bool = True
+    """At the first batch size, memrl with each learning option (n-step, shifts, heads) on."""
 
 
 @dataclass

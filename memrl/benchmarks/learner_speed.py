@@ -16,7 +16,9 @@ rounds; every round's figure is kept):
   ``agent.channels_last``, ``agent.compile``, ``agent.pool_first``, ``agent.precision``);
 - ``memrl_naive``: memrl with those options off (threads: torch's default);
 - ``memrl_tuned``: memrl with its defaults, the training configuration;
-- with ``ablation``, at the first batch size: memrl with each option flipped from its default.
+- with ``ablation``, at the first batch size: memrl with each option flipped from its default;
+- with ``learning``, at the first batch size: memrl with each learning option of
+  :data:`LEARNING_OPTIONS` on (its cost per update beside ``memrl_tuned``, the default).
 """
 
 from __future__ import annotations
@@ -37,6 +39,10 @@ from memrl.dqn.config import AgentConfig
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 OPTIONS = ("threads", "channels_last", "compile", "pool_first", "precision")
 """The learner speed options of ``agent`` (``conf/agent/dqn.yaml``)."""
+LEARNING_OPTIONS: dict[str, dict[str, Any]] = {
+    "augment_shift_4": {"agent": {"augment_shift": 4}},
+}
+"""Learning options timed beside the default (``learning=true``): name -> config values."""
 
 
 def default_agent_cfg() -> DictConfig:
@@ -148,7 +154,7 @@ def _window(step: Callable[[], float], seconds: float) -> tuple[float, int]:
 
 def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int = 3,
         warmup_updates: int = 2, buffer_transitions: int = 5000, ablation: bool = True,
-        seed: int = 0) -> dict[str, Any]:
+        seed: int = 0, learning: bool = True) -> dict[str, Any]:
     """Measure every variant at every batch size; returns figures and ratios."""
     batch_sizes = list(batch_sizes or [32, 128])
     tuned = default_agent_cfg()
@@ -179,6 +185,9 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
             flipped = "float32" if str(tuned.precision) != "float32" else "bfloat16"
             specs[f"memrl_precision_{flipped}"] = (agent_variant(tuned_b, precision=flipped),
                                                    "memrl")
+        if learning and b_i == 0:
+            for name, values in LEARNING_OPTIONS.items():
+                specs[f"memrl_{name}"] = (agent_variant(tuned_b, **values.get("agent", {})), "memrl")
         steps: dict[str, Callable[[], float]] = {}
         figures: dict[str, dict[str, Any]] = {}
         for name, (agent, kind) in specs.items():
