@@ -170,6 +170,7 @@ def markdown() -> str:
         parts.append(f"## {command}\n\n`{_usage(command)}`\n\n{doc}\n")
         parts.append("| key | type | default | range | doc |\n|---|---|---|---|---|")
         for key, type_, default, rng, text in command_rows(command):
-            parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} | {_cell(text)} |")
+            parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} "
+                         f"| {_cell(text)} |")
         parts.append("")
     return "\n".join(parts)
