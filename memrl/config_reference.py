@@ -154,11 +154,6 @@ def command_rows(command: str) -> list[tuple[str, ...]]:
     return rows
 
 
-def _usage(command: str) -> str:
-    first = (CONF_DIR / f"{command}.yaml").read_text().splitlines()[0]
-    return first.lstrip("# ").strip() if first.startswith("#") else f"python -m memrl.{command}"
-
-
 def markdown() -> str:
     """The whole reference, as ``docs/configuration.md`` holds it."""
     from memrl.schemas import SCHEMAS
@@ -167,7 +162,7 @@ def markdown() -> str:
     parts.append("Commands: " + ", ".join(f"[`{c}`](#{c})" for c in SCHEMAS) + ".\n")
     for command, schema in SCHEMAS.items():
         doc = " ".join(inspect.cleandoc(schema.__doc__ or "").split())
-        parts.append(f"## {command}\n\n`{_usage(command)}`\n\n{doc}\n")
+        parts.append(f"## {command}\n\n`python -m memrl.{command}`: {doc}\n")
         parts.append("| key | type | default | range | doc |\n|---|---|---|---|---|")
         for key, type_, default, rng, text in command_rows(command):
             parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} "
