@@ -197,3 +197,18 @@ def test_configuration_reference_is_generated():
 
     assert (ROOT / "docs" / "configuration.md").read_text() == markdown(), (
         "docs/configuration.md is stale: python -m memrl.configs --markdown > docs/configuration.md")
+
+
+def tested_block(page: str, marker: str) -> str:
+    """The fenced code block right after ``<!-- test:<marker> -->`` in ``page``."""
+    text = (ROOT / page).read_text()
+    m = re.search(rf"<!-- test:{marker} -->\s*```\w*\n(.*?)```", text, flags=re.S)
+    assert m, f"{page}: no block after <!-- test:{marker} -->"
+    return m.group(1)
+
+
+def test_sb3_example_runs():
+    """The Stable-Baselines3 example of docs/environments.md trains and acts (SB3 is optional)."""
+    pytest.importorskip("stable_baselines3")
+    code = tested_block("docs/environments.md", "sb3")
+    exec(compile(code, "docs/environments.md:sb3", "exec"), {"__name__": "sb3_example"})
