@@ -168,8 +168,8 @@ def test_documented_command_composes(page, line, cmd):
                 study = cfg.study
                 base = OmegaConf.to_container(study.train_overrides, resolve=False) or []
                 extra = [list(base)]
-                extra += [list(base) + list(v)
-                          for v in (OmegaConf.to_container(study.variants, resolve=False) if study.variants else {}).values()]
+                variants = OmegaConf.to_container(study.variants, resolve=False) if study.variants else {}
+                extra += [list(base) + list(v) for v in variants.values()]
                 for train in extra:
                     compose_once("train", [str(o) for o in train])
 
@@ -199,7 +199,7 @@ def test_configuration_reference_is_generated():
         "docs/configuration.md is stale: python -m memrl.configs --markdown > docs/configuration.md")
 
 
-def tested_block(page: str, marker: str) -> str:
+def code_block_after(page: str, marker: str) -> str:
     """The fenced code block right after ``<!-- test:<marker> -->`` in ``page``."""
     text = (ROOT / page).read_text()
     m = re.search(rf"<!-- test:{marker} -->\s*```\w*\n(.*?)```", text, flags=re.S)
@@ -210,5 +210,5 @@ def tested_block(page: str, marker: str) -> str:
 def test_sb3_example_runs():
     """The Stable-Baselines3 example of docs/environments.md trains and acts (SB3 is optional)."""
     pytest.importorskip("stable_baselines3")
-    code = tested_block("docs/environments.md", "sb3")
+    code = code_block_after("docs/environments.md", "sb3")
     exec(compile(code, "docs/environments.md:sb3", "exec"), {"__name__": "sb3_example"})
