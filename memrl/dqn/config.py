@@ -103,8 +103,8 @@ class Stage1Config:
     knowledge (docs/results/stage1-slow-check.md; docs/training.md, "Presets"): its own Adam at
     1e-3, DQfD's margin loss at weight 3, and every 1,000 updates 40 greedy drives that stop it
     at 35 of them (else at 30,000 updates) and keep the best weights: 78% of non-goal test
-    episodes survived and reached the target, 3 seeds (docs/results/issue20, section 6; stopping at 75% within 20,000
-    updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
+    episodes survived and reached the target, 3 seeds (docs/results/issue20, section 6;
+    stopping at 75% within 20,000 updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
 
     max_updates: int = 30_000
     """Hard cap on stage-1 updates."""
