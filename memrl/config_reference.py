@@ -70,18 +70,32 @@ def _range(meta: Any) -> str:
     return text
 
 
-@cache
-def _yaml_comments(command: str, group: str) -> dict[str, str]:
-    """Key -> the comment on its line, over ``conf/<command>.yaml`` then ``conf/<group>/*.yaml``
-    (the first file that has one)."""
+def _comments_of(path: Path) -> dict[str, str]:
+    """Key -> the comment on its line, else the full-line comment right above it."""
     out: dict[str, str] = {}
-    for path in [CONF_DIR / f"{command}.yaml", *sorted((CONF_DIR / group).glob("*.yaml"))]:
-        if not path.is_file():
+    above = ""
+    for line in path.read_text().splitlines():
+        if line.lstrip().startswith("#"):
+            above = line.lstrip("# ").strip()
             continue
-        for line in path.read_text().splitlines():
-            m = re.match(r"\s*([A-Za-z_][\w]*):[^#]*#\s*(.+)$", line)
-            if m and m.group(1) not in out:
-                out[m.group(1)] = m.group(2).strip()
+        m = re.match(r"\s*([A-Za-z_]\w*):([^#]*)(?:#\s*(.+))?$", line)
+        if m and m.group(1) not in out and (m.group(3) or above):
+            out[m.group(1)] = (m.group(3) or above).strip()
+        above = ""
+    return out
+
+
+@cache
+def _yaml_comments(command: str, group: str, anywhere: bool) -> dict[str, str]:
+    """Key -> its YAML comment, from ``conf/<command>.yaml``, then ``conf/<group>/*.yaml``, then
+    (``anywhere``: for untyped keys) any other file under ``conf/``; the first file that has one."""
+    out: dict[str, str] = {}
+    paths = [CONF_DIR / f"{command}.yaml", *sorted((CONF_DIR / group).glob("*.yaml")),
+             *(sorted(CONF_DIR.rglob("*.yaml")) if anywhere else [])]
+    for path in paths:
+        if path.is_file():
+            for key, text in _comments_of(path).items():
+                out.setdefault(key, text)
     return out
 
 
@@ -133,7 +147,7 @@ def _rows(command: str, node: DictConfig, prefix: str, rows: list[tuple[str, ...
             rng = ""
             doc = ""
         if not doc:
-            doc = _yaml_comments(command, name.split(".")[0]).get(str(key), "")
+            doc = _yaml_comments(command, name.split(".")[0], f is None).get(str(key), "")
         rows.append((name, type_, default, rng, doc))
 
 
@@ -159,12 +173,16 @@ def markdown() -> str:
     from memrl.schemas import SCHEMAS
 
     parts = [HEADER]
+    seen_docs: dict[str, str] = {}  # key -> doc, for a key another command documents
     parts.append("Commands: " + ", ".join(f"[`{c}`](#{c})" for c in SCHEMAS) + ".\n")
     for command, schema in SCHEMAS.items():
         doc = " ".join(inspect.cleandoc(schema.__doc__ or "").split())
         parts.append(f"## {command}\n\n`python -m memrl.{command}`: {doc}\n")
         parts.append("| key | type | default | range | doc |\n|---|---|---|---|---|")
         for key, type_, default, rng, text in command_rows(command):
+            text = text or seen_docs.get(key, "")
+            if text:
+                seen_docs.setdefault(key, text)
             parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} "
                          f"| {_cell(text)} |")
         parts.append("")
