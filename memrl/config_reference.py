@@ -61,6 +61,34 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
+@cache
+def env_check_ranges() -> dict[str, str]:
+    """Env key -> the ranges its check states: the messages of the ``_check(cond, "<key>",
+    "<message>")`` calls in ``memrl/envs/config.py`` (checks whose key is a constant string)."""
+    from memrl.envs import config as env_config
+
+    out: dict[str, list[str]] = {}
+    for node in ast.walk(ast.parse(inspect.getsource(env_config))):
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                and node.func.id == "_check" and len(node.args) >= 3):
+            continue
+        key, message = node.args[1], node.args[2]
+        if not (isinstance(key, ast.Constant) and isinstance(key.value, str)):
+            continue
+        if isinstance(message, ast.JoinedStr):
+            text = "".join(v.value if isinstance(v, ast.Constant) else
+                           re.sub(r"\b(cfg|opp|sub)\.", "", ast.unparse(v.value))  # type: ignore[attr-defined]
+                           for v in message.values)
+        elif isinstance(message, ast.Constant) and isinstance(message.value, str):
+            text = message.value
+        else:
+            continue
+        text = re.sub(r",? got .*$", "", text.strip()).strip()
+        if re.search(r"\b(need|must|expected)\b", text) and text not in out.setdefault(key.value, []):
+            out[key.value].append(text)
+    return {k: "; ".join(v) for k, v in out.items()}
+
+
 def _range(meta: Any) -> str:
     from memrl.fields import _valid
 
@@ -140,6 +168,8 @@ def _rows(command: str, node: DictConfig, prefix: str, rows: list[tuple[str, ...
             type_ = str(f.type).replace("typing.", "")
             rng = _range(f.metadata)
             doc = docs.get(str(key), "")
+            if not rng and name.startswith("env."):
+                rng = env_check_ranges().get(name.removeprefix("env."), "")
         else:
             value = child._value()
             type_ = "list" if isinstance(child, ListConfig) else \
