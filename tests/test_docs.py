@@ -177,18 +177,34 @@ def test_documented_command_composes(page, line, cmd):
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)|<img[^>]*\ssrc=\"([^\"]+)\"")
 
 
+def anchors(page: Path) -> set[str]:
+    """GitHub's anchors of the headings of a Markdown page."""
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+    out = set()
+    for m in re.finditer(r"^#+\s+(.+?)\s*$", text, flags=re.M):
+        slug = re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-")
+        out.add(slug)
+    return out
+
+
 def test_relative_links_resolve():
+    """Every relative link and image of README and docs/ names a file that exists (or a pending
+    page), and a ``#fragment`` names a heading of its page."""
     missing = []
     for page in doc_files():
         text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)  # not inside code blocks
         for m in LINK.finditer(text):
-            target = (m.group(1) or m.group(2)).split("#")[0]
-            if not target or re.match(r"[a-z]+:", target):
+            link = m.group(1) or m.group(2)
+            target, _, fragment = link.partition("#")
+            if re.match(r"[a-z]+:", target):
                 continue
-            path = (page.parent / target).resolve()
+            path = (page.parent / target).resolve() if target else page
             rel = path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else str(path)
-            if not path.exists() and rel not in PENDING_PAGES:
-                missing.append(f"{page.relative_to(ROOT)}: {target}")
+            if not path.exists():
+                if rel not in PENDING_PAGES:
+                    missing.append(f"{page.relative_to(ROOT)}: {link}")
+            elif fragment and path.suffix == ".md" and fragment not in anchors(path):
+                missing.append(f"{page.relative_to(ROOT)}: {link} (no such heading)")
     assert not missing, "links that resolve to nothing:\n" + "\n".join(missing)
 
 
