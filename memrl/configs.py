@@ -30,3 +30,22 @@ def register_configs() -> None:
     cs.store(group="eval_schema", name="base", node=PeriodicEvalConfig, package="eval")
     # A group of its own, so that `+mode=A|B` can still be added on top of the typed node.
     cs.store(group="mode_schema", name="base", node=ModeConfig, package="mode")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m memrl.configs --markdown``: print the configuration reference
+    (``docs/configuration.md``, :mod:`memrl.config_reference`)."""
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    if args != ["--markdown"]:
+        print("usage: python -m memrl.configs --markdown > docs/configuration.md", file=sys.stderr)
+        return 2
+    from memrl.config_reference import markdown
+
+    sys.stdout.write(markdown())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -24,7 +24,7 @@ class DemoRecipe:
     """A dataset of the scripted driver (``memrl.modules.scripted.ScriptedDriver``).
 
     The defaults are the manoeuvre-focused recipe that made mode B's stage 1 change lanes
-    (README, "Stage 1 on its own"): 240 episodes that start outside the target lane among 0-5
+    (docs/results/stage1-slow-check.md): 240 episodes that start outside the target lane among 0-5
     cars, kept up to 30 steps after the target lane is reached (the wait for a gap, the change
     and the settling, not 250 steps of lane keeping), recorded with 20% random actions of which
     only the driver's own recoveries are stored (DART-style), from a driver that decides on

@@ -106,11 +106,11 @@ class Stage1Config:
     """Mode B stage 1: train on prior knowledge only, until behaviour converges.
 
     The defaults are those with which stage 1 learned the lane change from the default prior
-    knowledge (README, "Stage 1 on its own" and "Presets"): its own Adam at 1e-3, DQfD's margin
-    loss at weight 3, and every 1,000 updates 40 greedy drives that stop it at 35 of them (else
-    at 30,000 updates) and keep the best weights: 78% of non-goal test episodes survived and
-    reached the target, 3 seeds (docs/results/issue20, section 6; stopping at 75% within 20,000
-    updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
+    knowledge (docs/results/stage1-slow-check.md; docs/training.md, "Presets"): its own Adam at
+    1e-3, DQfD's margin loss at weight 3, and every 1,000 updates 40 greedy drives that stop it
+    at 35 of them (else at 30,000 updates) and keep the best weights: 78% of non-goal test
+    episodes survived and reached the target, 3 seeds (docs/results/issue20, section 6;
+    stopping at 75% within 20,000 updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
 
     max_updates: int = 30_000
     """Hard cap on stage-1 updates."""
@@ -138,17 +138,17 @@ class Stage1Config:
     keep_best: bool = True
     """With drive episodes: stage 2 (and ``stage1.pt``) start from the checked weights that
     drove best (most episodes surviving and reaching; ties: the later), not the last ones.
-    Imitation from few demos swings from check to check (README, "Stage 1 on its own")."""
+    Imitation from few demos swings from check to check (docs/results/stage1-slow-check.md)."""
     margin_weight: float = 3.0
     """Weight of DQfD's large-margin loss on the demos in stage 1 (0: eq. (1) alone, the
     paper's literal reading; with it alone the greedy agent drifts away from the demo actions,
-    see the README)."""
+    see docs/results/stage1-slow-check.md)."""
     margin: float = 0.8
     """Margin of that loss [Q units]."""
     lr: float | None = 1e-3
     """Adam learning rate of stage 1 (None: ``agent.lr``). Stage 2 starts a fresh Adam at
     ``agent.lr`` whatever this is. At 2.5e-4 stage 1 learned the steering too slowly
-    (README, "Stage 1 on its own")."""
+    (docs/results/stage1-slow-check.md)."""
     init: Any = None
     """A mode B run folder (or its ``checkpoints/stage1.pt``) whose stage-1 weights this run's
     stage 2 starts from, training no stage 1 of its own: one pretraining shared by stage-2
