@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -68,9 +69,13 @@ class Learner:
     update multiplies it by 0.5.
     """
 
-    def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu") -> None:
+    def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu",
+                 network: Mapping[str, Any] | torch.nn.Module | None = None) -> None:
+        """``network``: the Q-network, as a ``network`` config node or stored architecture
+        (built with ``agent.pool_first``), or a built module; None: Table I."""
         self.cfg, self.device = cfg, torch.device(device)
-        self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)))
+        self.actor: QValueActor = make_q_actor(pool_first=bool(_option(cfg, "pool_first", True)),
+                                               network=network)
         self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
         precision = str(_option(cfg, "precision", "float32"))

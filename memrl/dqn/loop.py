@@ -41,6 +41,7 @@ from memrl.dqn.stage1 import Stage1Checks, Stage1Progress
 from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
+from memrl.modules.qnet import arch_of
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +106,7 @@ class Trainer:
         self.device = resolve_device(cfg.get("device", "cpu"))
         self.num_envs = int(cfg.env.get("num_envs", 1))
         self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed))
-        self.learner = Learner(cfg.agent, self.device)
+        self.learner = Learner(cfg.agent, self.device, network=cfg.get("network"))
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.get("overlap", False)),
                                   int(cfg.agent.threads))
         self.schedule = UpdateSchedule(int(cfg.agent.train_every), int(cfg.agent.warmup_frames),
@@ -259,6 +260,7 @@ class Trainer:
         path = self.out_dir / "checkpoints" / "stage1.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         torch.save({"loss_module": self.learner.loss_module.state_dict(),
+                    "network": arch_of(self.learner.qnet),  # what loaders rebuild
                     "stage1": dataclasses.asdict(self.stage1)}, path)
         self.learner.sync_target()
         self.learner.reset_optimizer()

@@ -32,7 +32,6 @@ from memrl.envs.lane_change import LaneChangeEnv
 from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
-from memrl.modules.qnet import QNetwork
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +46,7 @@ class GreedyActor(Actor):
 
     tensor_policy = True
 
-    def __init__(self, net: QNetwork, device: torch.device | str = "cpu") -> None:
+    def __init__(self, net: torch.nn.Module, device: torch.device | str = "cpu") -> None:
         self.policy = GreedyPolicy(net, device)
 
     @property
