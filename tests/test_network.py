@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 from hydra.utils import instantiate
 from torch import nn
 
@@ -85,6 +86,19 @@ def test_table1_default_equals_todays_qnetwork_bit_for_bit(compose_cfg, pool_fir
     torch.manual_seed(7)
     learner = Learner(AgentConfig(pool_first=pool_first), network=cfg.network)
     assert equal_weights(learner.qnet, today)
+
+
+@pytest.mark.parametrize("name", ["table1", "dueling"])
+def test_network_files_name_their_class_and_repeat_no_schema_default(name):
+    from omegaconf import OmegaConf
+
+    from memrl.modules.network_config import NetworkConfig
+
+    raw = yaml.safe_load((ROOT / "conf" / "network" / f"{name}.yaml").read_text())
+    defaults = OmegaConf.to_container(OmegaConf.structured(NetworkConfig))
+    assert raw.pop("defaults") == ["network_schema", "_self_"]
+    assert raw["_target_"].startswith("memrl.modules.qnet.")
+    assert not [k for k, v in raw.items() if defaults.get(k) == v]
 
 
 def test_a_file_written_before_architectures_were_stored_loads_as_table1(tmp_path):

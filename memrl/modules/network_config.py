@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from omegaconf import MISSING
+
 from memrl.errors import config_error
 from memrl.fields import check_fields, spec
 
@@ -17,10 +19,11 @@ class NetworkConfig:
     """The Q-network: a class (``_target_``) and its architecture arguments. The input (4
     stacked 84x84 gray frames) and the 9 actions come from the env, not from here."""
 
-    _target_: str = "memrl.modules.qnet.QNetwork"
-    """The network class: ``memrl.modules.qnet.QNetwork`` (Table I, ``network=table1``) or
-    ``memrl.modules.qnet.DuelingQNetwork`` (``network=dueling``); any ``torch.nn.Module`` taking
-    ``channels, hidden, layernorm, layernorm_convs, pool_first`` keywords (docs/network.md)."""
+    _target_: str = MISSING
+    """The network class, named by each ``conf/network/<name>.yaml``: ``memrl.modules.qnet.QNetwork``
+    (Table I, ``network=table1``), ``memrl.modules.qnet.DuelingQNetwork`` (``network=dueling``);
+    any ``torch.nn.Module`` taking ``channels, hidden, layernorm, layernorm_convs, pool_first``
+    keywords (docs/network.md)."""
     channels: int = spec(16, ge=1)
     """Filters of each of the three 3x3 convs (Table I: 16)."""
     hidden: int = spec(256, ge=1)
