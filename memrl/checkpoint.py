@@ -115,13 +115,13 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     file = stage1_file(path)
     if network is not None:
         try:
-            theirs = stored_arch(torch.load(file, weights_only=False, map_location="cpu"))
+            stored = stored_arch(torch.load(file, weights_only=False, map_location="cpu"))
         except Exception as err:  # truncated file, foreign pickle
             raise CheckpointError(f"{file}: not a memrl stage-1 checkpoint ({err})") from err
         with torch.random.fork_rng(devices=[]):  # building draws initial weights
             ours = arch_of(build_qnet(network))
-        if theirs != ours:
-            raise CheckpointError(f"{file}: its network {describe(theirs)} is not this run's "
+        if stored != ours:
+            raise CheckpointError(f"{file}: its network {describe(stored)} is not this run's "
                                   f"{describe(ours)} (key network)")
     run_cfg = file.parent.parent / "config.yaml"
     if run_cfg.is_file():

@@ -148,7 +148,8 @@ def build_qnet(arch: Mapping[str, Any] | None = None, **runtime: Any) -> nn.Modu
     if not isinstance(net, nn.Module):
         raise TypeError(f"network._target_ {node.get('_target_')!r} made a {type(net).__name__}, "
                         "not a torch.nn.Module")
-    net.arch = {**getattr(net, "arch", {}), **{k: v for k, v in node.items() if k not in RUNTIME_ARGS}}
+    arch_args = {k: v for k, v in node.items() if k not in RUNTIME_ARGS}
+    net.arch = {**getattr(net, "arch", {}), **arch_args}  # type: ignore[assignment]
     return net
 
 
