@@ -222,6 +222,12 @@ def test_a_trained_network_loads_back_through_evaluate_deploy_and_the_pool(
     index = torch.zeros(len(x), dtype=torch.long)
     pool = LearnedCarController([str(run / "checkpoints" / "final.pt")])
     assert torch.equal(pool.q_values(index, x), LearnedCarController([trained]).q_values(index, x))
+    # a resume into a fresh trainer rebuilds the same network from the run's config
+    from memrl.dqn.loop import Trainer
+
+    resumed = Trainer(cfg, tmp_path / "probe", demos)
+    resumed.resume(run)
+    assert type(resumed.learner.qnet) is cls and equal_weights(resumed.learner.qnet, trained)
     if name == "dueling":  # mode B: stage1.pt stores the architecture too
         s1 = torch.load(run / "checkpoints" / "stage1.pt", weights_only=False)
         assert s1["network"] == trained.arch
