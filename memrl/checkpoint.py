@@ -14,7 +14,7 @@ from memrl.dqn.checkpoint import CheckpointError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
-from memrl.modules.qnet import QNetwork
+from memrl.modules.qnet import TABLE1, arch_of, build_qnet, input_frames
 
 
 def resolve(path: str | Path) -> Path:
@@ -27,21 +27,64 @@ def resolve(path: str | Path) -> Path:
                           "checkpoints/final.pt, or a final.pt file)")
 
 
-def save_qnet(path: str | Path, net: QNetwork, env_cfg: dict[str, Any],
+def save_qnet(path: str | Path, net: torch.nn.Module, env_cfg: dict[str, Any],
               extra: dict[str, Any] | None = None) -> Path:
-    """Write a network in the ``final.pt`` format (``qnet`` weights, ``env`` config, extras)."""
+    """Write a network in the ``final.pt`` format (``qnet`` weights, ``network`` architecture,
+    ``env`` config, extras)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     weights = {k: v.cpu() for k, v in net.state_dict().items()}  # loads on any device
-    torch.save({"qnet": weights, "env": env_cfg, **(extra or {})}, path)
+    torch.save({"qnet": weights, "network": arch_of(net), "env": env_cfg, **(extra or {})}, path)
     return path
 
 
-def qnet_weights(state: dict[str, Any], prefix: str = "value_network_params.") -> dict[str, Any]:
+def stored_arch(state: dict[str, Any]) -> dict[str, Any]:
+    """The architecture a weights file stores; Table I for files written before they did."""
+    arch = state.get("network")
+    return dict(TABLE1 if arch is None else arch)
+
+
+def qnet_from(file: Path, arch: dict[str, Any], weights: dict[str, Any],
+              net: torch.nn.Module | None = None) -> torch.nn.Module:
+    """The network of ``arch`` (``net``: already built from it) with ``weights``, in eval mode;
+    a network that ``arch`` cannot build, or weights of another architecture, are refused
+    naming ``file``."""
+    net = _build(file, arch) if net is None else net
+    want = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    have = {k: tuple(getattr(v, "shape", ())) for k, v in weights.items()}
+    if want != have:
+        missing, extra = sorted(set(want) - set(have)), sorted(set(have) - set(want))
+        shapes = sorted(k for k in set(want) & set(have) if want[k] != have[k])
+        what = "; ".join(f"{label} {', '.join(keys[:3])}{' ...' if len(keys) > 3 else ''}"
+                         for label, keys in (("missing", missing), ("unexpected", extra),
+                                             ("other shapes", shapes)) if keys)
+        raise CheckpointError(f"{file}: its weights do not match its network "
+                              f"{describe(arch)} ({what})")
+    net.load_state_dict(weights)
+    return net.eval()
+
+
+def _build(file: Path, arch: dict[str, Any]) -> torch.nn.Module:
+    try:
+        return build_qnet(arch)
+    except Exception as err:  # an unknown class or argument (Hydra's InstantiationException...)
+        raise CheckpointError(f"{file}: cannot build its network {arch.get('_target_')!r} "
+                              f"({str(err).splitlines()[0]})") from err
+
+
+def describe(arch: dict[str, Any]) -> str:
+    """``DuelingQNetwork(hidden=256, layernorm=True)``: the class and the arguments that differ
+    from Table I's."""
+    args = ", ".join(f"{k}={v!r}" for k, v in arch.items() if k != "_target_" and TABLE1.get(k) != v)
+    return f"{str(arch.get('_target_')).rsplit('.', 1)[-1]}({args})"
+
+
+def qnet_weights(state: dict[str, Any], names: set[str] | None = None,
+                 prefix: str = "value_network_params.") -> dict[str, Any]:
     """The Q-network's weights inside a TorchRL ``DQNLoss`` state dict (the online network's,
     keys under ``prefix``; e.g. ``value_network_params.module.0.module.head.1.weight`` ->
-    ``head.1.weight``)."""
-    names = set(QNetwork().state_dict())
+    ``head.1.weight``); ``names``: the bare network's parameter names (None: Table I's)."""
+    names = set(build_qnet(TABLE1).state_dict()) if names is None else names
     out = {}
     for key, value in state.items():
         if not key.startswith(prefix):
@@ -64,11 +107,22 @@ def stage1_file(path: str | Path) -> Path:
     return file
 
 
-def stage1_source(path: str | Path, env_cfg: Any) -> Path:
-    """The stage-1 weights that ``mode.stage1.init`` names, checked: present, and trained in
-    the same env config as ``env_cfg`` (the pixels mean the same) when the run folder's
-    ``config.yaml`` is there to tell."""
+def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) -> Path:
+    """The stage-1 weights that ``mode.stage1.init`` names, checked: present, trained in the
+    same env config as ``env_cfg`` (the pixels mean the same) when the run folder's
+    ``config.yaml`` is there to tell, and, with ``network`` (a ``network`` config node), of
+    that architecture."""
     file = stage1_file(path)
+    if network is not None:
+        try:
+            stored = stored_arch(torch.load(file, weights_only=False, map_location="cpu"))
+        except Exception as err:  # truncated file, foreign pickle
+            raise CheckpointError(f"{file}: not a memrl stage-1 checkpoint ({err})") from err
+        with torch.random.fork_rng(devices=[]):  # building draws initial weights
+            ours = arch_of(build_qnet(network))
+        if stored != ours:
+            raise CheckpointError(f"{file}: its network {describe(stored)} is not this run's "
+                                  f"{describe(ours)} (key network)")
     run_cfg = file.parent.parent / "config.yaml"
     if run_cfg.is_file():
         loaded = OmegaConf.load(run_cfg)
@@ -79,32 +133,33 @@ def stage1_source(path: str | Path, env_cfg: Any) -> Path:
     return file
 
 
-def load_stage1_qnet(path: str | Path) -> QNetwork:
+def load_stage1_qnet(path: str | Path) -> torch.nn.Module:
     """The Q-network at the end of mode B's stage 1: ``<run>/checkpoints/stage1.pt`` (or that
-    file), saved by the trainer as ``{"loss_module": DQNLoss state, "stage1": ...}``; a file in
-    the ``final.pt`` format (``{"qnet": ...}``) is read as such."""
+    file), saved by the trainer as ``{"loss_module": DQNLoss state, "network": architecture,
+    "stage1": ...}``; a file in the ``final.pt`` format (``{"qnet": ...}``) is read as such."""
     file = stage1_file(path)
     try:
         state = torch.load(file, weights_only=False, map_location="cpu")
-        weights = state["qnet"] if "qnet" in state else qnet_weights(state["loss_module"])
-        net = QNetwork()
-        net.load_state_dict(weights)
-    except Exception as err:  # truncated file, foreign pickle, another network
+        arch = stored_arch(state)
+        weights = state["qnet"] if "qnet" in state else state["loss_module"]
+    except Exception as err:  # truncated file, foreign pickle
         raise CheckpointError(f"{file}: not a memrl stage-1 checkpoint ({err})") from err
-    return net.eval()
+    net = _build(file, arch)
+    if "qnet" not in state:
+        weights = qnet_weights(weights, set(net.state_dict()))
+    return qnet_from(file, arch, weights, net)
 
 
-def load_qnet(path: str | Path) -> tuple[QNetwork, dict[str, Any]]:
-    """The Q-network of a finished run and the env config it was trained with."""
+def load_qnet(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """The Q-network of a finished run (built from the architecture its file stores) and the
+    env config it was trained with."""
     file = resolve(path)
     try:
         state = torch.load(file, weights_only=False, map_location="cpu")
-        net = QNetwork()
-        net.load_state_dict(state["qnet"])
-    except Exception as err:  # truncated file, foreign pickle, mismatched layers
+        arch, weights = stored_arch(state), state["qnet"]
+    except Exception as err:  # truncated file, foreign pickle
         raise CheckpointError(f"{file}: not a memrl Q-network checkpoint ({err})") from err
-    net.eval()
-    return net, state.get("env", {})
+    return qnet_from(file, arch, weights), state.get("env", {})
 
 
 class GreedyQPolicy(DrivingPolicy):
@@ -115,7 +170,7 @@ class GreedyQPolicy(DrivingPolicy):
     :class:`DrivingPolicy` form that memrl's own runners use.
     """
 
-    def __init__(self, net: QNetwork, epsilon: float = 0.0, seed: int = 0) -> None:
+    def __init__(self, net: torch.nn.Module, epsilon: float = 0.0, seed: int = 0) -> None:
         self.net, self.epsilon = net, float(epsilon)
         self.greedy = GreedyPolicy(net)  # the one greedy forward of evaluation and training drives
         self.rng = np.random.default_rng(seed)
@@ -123,7 +178,7 @@ class GreedyQPolicy(DrivingPolicy):
     @torch.no_grad()
     def act(self, env: LaneChangeEnv | np.ndarray, pixels: np.ndarray | None = None) -> int:
         obs = np.asarray(env if pixels is None else pixels)
-        frames = self.net.features[0].in_channels
+        frames = input_frames(self.net)
         if obs.dtype != np.uint8 or obs.shape[-3:] != (frames, 84, 84):
             raise ValueError(f"the policy takes uint8 observations of shape ({frames}, 84, 84), got "
                              f"{obs.dtype} {tuple(obs.shape)}: make the env with config={{'frame_stack': "

@@ -10,6 +10,7 @@ from memrl.dqn.config import AgentConfig, BufferConfig, ModeConfig
 from memrl.envs.config import LaneChangeConfig
 from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.protocol import ProtocolConfig
+from memrl.modules.network_config import NetworkConfig
 from memrl.schemas import SCHEMAS
 
 
@@ -26,6 +27,7 @@ def register_configs() -> None:
     cs.store(group="deploy", name="deploy_schema", node=DeployConfig)
     cs.store(group="agent", name="dqn_schema", node=AgentConfig)
     cs.store(group="buffer", name="buffer_schema", node=BufferConfig)
+    cs.store(group="network", name="network_schema", node=NetworkConfig)
     cs.store(group="protocol", name="protocol_schema", node=ProtocolConfig)
     cs.store(group="eval_schema", name="base", node=PeriodicEvalConfig, package="eval")
     # A group of its own, so that `+mode=A|B` can still be added on top of the typed node.

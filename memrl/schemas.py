@@ -83,6 +83,8 @@ class TrainSchema:
     """Full tracebacks for user errors (as ``HYDRA_FULL_ERROR=1``)."""
     env: Any = MISSING
     agent: Any = MISSING
+    network: Any = MISSING
+    """The Q-network (``network=table1|dueling``; :class:`memrl.modules.network_config.NetworkConfig`)."""
     buffer: Any = MISSING
     mode: Any = MISSING
     eval: Any = MISSING
@@ -125,9 +127,11 @@ def check_device(value: Any, key: str) -> None:
 def check_train(cfg: DictConfig) -> None:
     """Every value of a train config, and the folders it names (resume, demos_path)."""
     from memrl.dqn.config import check_train_config
+    from memrl.modules.network_config import check_network
 
     check_fields(TrainSchema, cfg)
     check_train_config(cfg)
+    check_network(cfg.network)
     if cfg.self_play_every and cfg.env.opponent.type == "constant":
         raise config_error("self_play_every", "snapshots join the learned cars' pool; it needs "
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
@@ -154,7 +158,7 @@ def check_train(cfg: DictConfig) -> None:
         from memrl.dqn.checkpoint import CheckpointError
 
         try:
-            stage1_source(str(init), cfg.env)
+            stage1_source(str(init), cfg.env, cfg.network)
         except CheckpointError as e:
             raise config_error("mode.stage1.init", str(e)) from None
 

@@ -27,6 +27,8 @@ periodic evaluation ``eval`` leaves the training's RNG and weights as they are).
 
 LEGACY_VALUES: dict[str, Any] = {
     "variant": None,
+    "network": {"_target_": "memrl.modules.qnet.QNetwork", "channels": 16, "hidden": 256,
+                "layernorm": False, "layernorm_convs": False},  # conf/network/table1.yaml
     "agent": {"precision": "float32", "overlap": False, "exploration": "epsilon", "ez_mu": 2.0,
               "ez_max_duration": 50, "temperature_start": 1.0, "temperature_end": 0.05},
     "env": {"bev": {"path_length": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
@@ -42,7 +44,7 @@ the versions before them did: a checkpoint without a key is compared as if it he
 value, so resuming it asks for exactly that value (``agent.overlap=false`` ...)."""
 
 
-LEGACY_NODES = ("example",)
+LEGACY_NODES = ("example", "network")
 """Keys of :data:`LEGACY_VALUES` whose value is a whole node added at once (other dict values
 only descend into the nodes a config has)."""
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -71,15 +72,18 @@ class Learner:
         terms: the loss terms of the first stage.
         seed: seed of the learner's own generator (image shifts), so that shifts do not depend
             on what the acting thread draws meanwhile.
+        network: the Q-network, as a ``network`` config node or stored architecture (built
+            with ``agent.pool_first``), or a built module; None: Table I.
     """
 
     def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu",
-                 terms: tuple[LossTerm, ...] = (TDTerm(),), seed: int = 0) -> None:
+                 terms: tuple[LossTerm, ...] = (TDTerm(),), seed: int = 0,
+                 network: Mapping[str, Any] | torch.nn.Module | None = None) -> None:
         self.cfg, self.device = cfg, torch.device(device)
         self.terms = tuple(terms)
         self.augment_shift = int(cfg.augment_shift)
         self.shift_generator = torch.Generator(device=self.device).manual_seed(int(seed))
-        self.actor: QValueActor = make_q_actor(pool_first=bool(cfg.pool_first))
+        self.actor: QValueActor = make_q_actor(pool_first=bool(cfg.pool_first), network=network)
         self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
         precision = str(cfg.precision)

@@ -42,6 +42,7 @@ from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
 from memrl.modes import mode_of
+from memrl.modules.qnet import arch_of
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +108,7 @@ class Trainer:
         self.device = resolve_device(cfg.device)
         self.num_envs = int(cfg.env.get("num_envs", 1))
         self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed))
-        self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed))
+        self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=cfg.network)
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),
                                   int(cfg.agent.threads))
         self.schedule = UpdateSchedule(int(cfg.agent.train_every), int(cfg.agent.warmup_frames),
@@ -268,6 +269,7 @@ class Trainer:
         path = self.out_dir / "checkpoints" / "stage1.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         torch.save({"loss_module": self.learner.loss_module.state_dict(),
+                    "network": arch_of(self.learner.qnet),  # what loaders rebuild
                     "stage1": dataclasses.asdict(self.stage1)}, path)
         self.learner.sync_target()
         following = self.spec.next_stage(self.counters.stage)

@@ -33,7 +33,6 @@ from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
 from memrl.modes import MODES
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
-from memrl.modules.qnet import QNetwork
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +45,7 @@ class GreedyActor(Actor):
 
     tensor_policy = True
 
-    def __init__(self, net: QNetwork, device: torch.device | str = "cpu") -> None:
+    def __init__(self, net: torch.nn.Module, device: torch.device | str = "cpu") -> None:
         self.policy = GreedyPolicy(net, device)
 
     @property

@@ -20,7 +20,6 @@ from torch.func import functional_call, stack_module_state
 
 from memrl.envs.controllers import CarController
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
-from memrl.modules.qnet import QNetwork
 
 if TYPE_CHECKING:
     from memrl.envs.lane_change import LaneChangeEnv
@@ -47,6 +46,11 @@ def expand_pool(pool: Sequence[str]) -> list[Path]:
     return files
 
 
+def _signature(net: torch.nn.Module) -> tuple:
+    """What decides whether networks can be stacked: class and parameter names and shapes."""
+    return (type(net), tuple((k, tuple(v.shape)) for k, v in net.state_dict().items()))
+
+
 class LearnedCarController(CarController):
     """Drives cars with greedy (or epsilon-greedy) Q-networks of past agents.
 
@@ -57,12 +61,12 @@ class LearnedCarController(CarController):
 
     kind = "learned"
 
-    def __init__(self, pool: Sequence[str | QNetwork], epsilon: float = 0.0) -> None:
+    def __init__(self, pool: Sequence[str | torch.nn.Module], epsilon: float = 0.0) -> None:
         from memrl.checkpoint import load_qnet
 
-        nets: list[QNetwork] = []
+        nets: list[torch.nn.Module] = []
         for entry in pool:
-            if isinstance(entry, QNetwork):
+            if isinstance(entry, torch.nn.Module):
                 nets.append(entry)
             else:
                 nets += [load_qnet(f)[0] for f in expand_pool([entry])]
@@ -73,10 +77,15 @@ class LearnedCarController(CarController):
         """Number of batched forward passes made (one per step with learned cars)."""
         self._set_networks(nets)
 
-    def _set_networks(self, nets: list[QNetwork]) -> None:
+    def _set_networks(self, nets: list[torch.nn.Module]) -> None:
         # channels-last weights: the same Q-values, several times faster convs on CPU
         self.networks = [n.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
                          for n in nets]
+        # one vmapped pass needs networks of one architecture; a pool of several (a Table I
+        # agent and a dueling one) runs one pass per network its cars use
+        self._one_arch = len({_signature(n) for n in self.networks}) == 1
+        if not self._one_arch:
+            return
         params, buffers = stack_module_state(self.networks)  # type: ignore[arg-type]
         self._params = {k: v.detach() for k, v in params.items()}
         self._buffers = buffers
@@ -91,7 +100,7 @@ class LearnedCarController(CarController):
     def device(self) -> torch.device:
         return next(self.networks[0].parameters()).device
 
-    def add_network(self, net: QNetwork) -> None:
+    def add_network(self, net: torch.nn.Module) -> None:
         """Add a snapshot (e.g. of the agent being trained) to the pool; used from the next
         episode on."""
         self._set_networks([*self.networks, copy.deepcopy(net).to(self.device)])
@@ -105,6 +114,12 @@ class LearnedCarController(CarController):
             net = self.networks[int(model_index[0])]
             # in chunks: past ~64 stacks the activations outgrow the caches and each costs more
             return torch.cat([net(part) for part in stacks.split(64)])
+        if not self._one_arch:
+            out = torch.empty(len(stacks), N_ACTIONS, device=stacks.device)
+            for index in model_index.unique().tolist():
+                cars = model_index == index
+                out[cars] = torch.cat([self.networks[index](part) for part in stacks[cars].split(64)])
+            return out
 
         def run(params: dict, buffers: dict, x: torch.Tensor) -> torch.Tensor:
             return functional_call(self._skeleton, (params, buffers), (x,))

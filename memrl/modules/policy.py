@@ -101,10 +101,12 @@ class GreedyPolicy(DrivingPolicy):
                           for part in x.split(chunk)])
 
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        """The network's forward; a Table I network's 2x2 max-pools as strided maxima (the
-        same values; nn.MaxPool2d on channels-last CPU tensors is about a third of the pass)."""
+        """The network's forward; the 2x2 max-pools of a Table I trunk (any :class:`QNetwork`
+        that keeps its forward) as strided maxima (the same values; nn.MaxPool2d on
+        channels-last CPU tensors is about a third of the pass)."""
         net = self.net
-        if not isinstance(net, QNetwork) or net.conv_dtype is not None or x.device.type != "cpu":
+        if not isinstance(net, QNetwork) or type(net).forward is not QNetwork.forward or \
+                net.conv_dtype is not None or x.device.type != "cpu":
             return net(x)
         batch = x.shape[:-3]
         h = x.reshape(-1, *x.shape[-3:]).to(torch.float32).div_(255.0)  # as QNetwork.forward

@@ -1,6 +1,15 @@
-"""The Q-network of Table I and its TorchRL actor."""
+"""The Q-networks (Table I and its variants), built from the ``network`` config, and their
+TorchRL actor.
+
+A network is config (``conf/network/*.yaml``, ``_target_`` + keyword arguments) and travels
+with its weights: :func:`build_qnet` instantiates it and records the arguments in ``net.arch``,
+which every weights file stores next to the weights (``memrl.checkpoint``).
+"""
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 from torch import nn
@@ -9,6 +18,12 @@ from torchrl.modules import QValueActor
 
 from memrl.envs.vehicles import N_ACTIONS
 
+TABLE1_TARGET = "memrl.modules.qnet.QNetwork"
+"""``_target_`` of the paper's Table I network (``conf/network/table1.yaml``)."""
+
+RUNTIME_ARGS = ("pool_first",)
+"""Constructor arguments that change speed, never outputs nor parameter names (not stored)."""
+
 
 class QNetwork(nn.Module):
     """Table I: three 3x3 conv layers of 16 filters, each ReLU + 2x2 max-pool, FC 256, 9 outputs.
@@ -16,11 +31,33 @@ class QNetwork(nn.Module):
     Padding 1 ("same") keeps each conv's size, so 84 -> 42 -> 21 -> 10 after the three pools
     (the last pool floors 21 / 2); the FC layer sees 16 x 10 x 10 = 1600 features. Input is
     uint8 ``[..., frames, H, W]``, scaled to [0, 1] inside the module.
+
+    Subclasses change a part (e.g. :class:`DuelingQNetwork` the head, through :meth:`make_head`);
+    ``self.arch`` records the constructor's architecture arguments (a subclass with arguments
+    of its own adds them there).
+
+    Args:
+        frames: stacked input frames (channels of the first conv).
+        size: side of the square input frames [px].
+        n_actions: Q-values out.
+        channels: filters of each conv.
+        hidden: units of the hidden FC layer.
+        pool_first: max-pool before ReLU (the same outputs, a quarter of the ReLU work).
+        layernorm: LayerNorm after the hidden FC layer (before its ReLU).
+        layernorm_convs: a LayerNorm over (channels, H, W) after each conv (``GroupNorm`` with
+            one group: per-channel affine), before its pool and ReLU.
     """
 
     def __init__(self, frames: int = 4, size: int = 84, n_actions: int = N_ACTIONS,
-                 channels: int = 16, hidden: int = 256, pool_first: bool = True) -> None:
+                 channels: int = 16, hidden: int = 256, pool_first: bool = True,
+                 layernorm: bool = False, layernorm_convs: bool = False) -> None:
         super().__init__()
+        self.frames = frames
+        self.arch: dict[str, Any] = {
+            "_target_": f"{type(self).__module__}.{type(self).__qualname__}", "frames": frames,
+            "size": size, "n_actions": n_actions, "channels": channels, "hidden": hidden,
+            "layernorm": layernorm, "layernorm_convs": layernorm_convs}
+        """The architecture: what :func:`build_qnet` rebuilds this network from."""
         layers: list[nn.Module] = []
         c_in = frames
         for _ in range(3):
@@ -28,14 +65,19 @@ class QNetwork(nn.Module):
             # runs the ReLU (forward and backward) on a quarter of the values. Parameter names
             # are the same either way.
             act_pool = [nn.MaxPool2d(2), nn.ReLU()] if pool_first else [nn.ReLU(), nn.MaxPool2d(2)]
-            layers += [nn.Conv2d(c_in, channels, 3, padding=1), *act_pool]
+            norm = [nn.GroupNorm(1, channels)] if layernorm_convs else []
+            layers += [nn.Conv2d(c_in, channels, 3, padding=1), *norm, *act_pool]
             c_in = channels
         self.features = nn.Sequential(*layers)
         side = size
         for _ in range(3):
             side //= 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(channels * side * side, hidden), nn.ReLU(),
-                                  nn.Linear(hidden, n_actions))
+        self.head = self.make_head(channels * side * side, hidden, n_actions, layernorm)
+
+    def make_head(self, features: int, hidden: int, n_actions: int, layernorm: bool) -> nn.Module:
+        """The part after the conv trunk: flattened features -> Q-values ``[B, n_actions]``."""
+        return nn.Sequential(nn.Flatten(), *hidden_layer(features, hidden, layernorm),
+                             nn.Linear(hidden, n_actions))
 
     conv_dtype: torch.dtype | None = None
     """Lower precision for the conv trunk (``torch.bfloat16``: autocast, weights stay float32;
@@ -53,8 +95,91 @@ class QNetwork(nn.Module):
         return self.head(features).reshape(*batch, -1)
 
 
-def make_q_actor(frames: int = 4, size: int = 84, pool_first: bool = True) -> QValueActor:
+def hidden_layer(features: int, hidden: int, layernorm: bool) -> list[nn.Module]:
+    """Linear -> [LayerNorm] -> ReLU: the hidden FC layer of a head."""
+    return [nn.Linear(features, hidden), *([nn.LayerNorm(hidden)] if layernorm else []), nn.ReLU()]
+
+
+class DuelingHead(nn.Module):
+    """Value and advantage streams; Q = V + A - mean_a(A) (Wang et al., 2016)."""
+
+    def __init__(self, features: int, hidden: int, n_actions: int, layernorm: bool) -> None:
+        super().__init__()
+        self.value = nn.Sequential(nn.Flatten(), *hidden_layer(features, hidden, layernorm),
+                                   nn.Linear(hidden, 1))
+        self.advantage = nn.Sequential(nn.Flatten(), *hidden_layer(features, hidden, layernorm),
+                                       nn.Linear(hidden, n_actions))
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        a = self.advantage(features)
+        return self.value(features) + a - a.mean(-1, keepdim=True)
+
+
+class DuelingQNetwork(QNetwork):
+    """Table I's conv trunk with a dueling head: value and advantage streams, each a hidden FC
+    layer of ``hidden`` units (``conf/network/dueling.yaml``)."""
+
+    def make_head(self, features: int, hidden: int, n_actions: int, layernorm: bool) -> nn.Module:
+        return DuelingHead(features, hidden, n_actions, layernorm)
+
+
+TABLE1: dict[str, Any] = {"_target_": TABLE1_TARGET, "frames": 4, "size": 84, "n_actions": N_ACTIONS,
+                          "channels": 16, "hidden": 256, "layernorm": False, "layernorm_convs": False}
+"""The architecture of a weights file that stores none (written before architectures were)."""
+
+
+def plain_arch(arch: Mapping[str, Any]) -> dict[str, Any]:
+    """``arch`` (a dict or DictConfig) as a plain dict."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(arch, DictConfig):
+        return OmegaConf.to_container(arch, resolve=True)  # type: ignore[return-value]
+    return dict(arch)
+
+
+def build_qnet(arch: Mapping[str, Any] | None = None, **runtime: Any) -> nn.Module:
+    """The network of ``arch`` (``_target_`` + arguments: a ``network`` config node or a
+    stored architecture; None: Table I), with ``runtime`` arguments (``pool_first``) added.
+    ``net.arch`` holds every architecture argument, to be stored with the weights."""
+    from hydra.utils import instantiate
+
+    node = plain_arch(TABLE1 if arch is None else arch)
+    net = instantiate(node, **runtime, _convert_="all")
+    if not isinstance(net, nn.Module):
+        raise TypeError(f"network._target_ {node.get('_target_')!r} made a {type(net).__name__}, "
+                        "not a torch.nn.Module")
+    arch_args = {k: v for k, v in node.items() if k not in RUNTIME_ARGS}
+    net.arch = {**getattr(net, "arch", {}), **arch_args}  # type: ignore[assignment]
+    return net
+
+
+def arch_of(net: nn.Module) -> dict[str, Any]:
+    """The architecture to store with ``net``'s weights (what :func:`build_qnet` rebuilds it from)."""
+    arch = getattr(net, "arch", None)
+    if arch is None:
+        raise TypeError(f"{type(net).__name__} records no architecture (build it with build_qnet)")
+    return dict(arch)
+
+
+def input_frames(net: nn.Module) -> int:
+    """Stacked frames the network takes: ``net.frames``, else its first conv's input channels."""
+    frames = getattr(net, "frames", None)
+    if frames is None:
+        conv = next((m for m in net.modules() if isinstance(m, nn.Conv2d)), None)
+        frames = conv.in_channels if conv is not None else 4
+    return int(frames)
+
+
+def make_q_actor(frames: int = 4, size: int = 84, pool_first: bool = True,
+                 network: Mapping[str, Any] | nn.Module | None = None) -> QValueActor:
     """A TorchRL ``QValueActor`` reading ``pixels`` and writing ``action`` (int64 index),
-    ``action_value`` and ``chosen_action_value``."""
-    return QValueActor(QNetwork(frames, size, pool_first=pool_first), in_keys=["pixels"],
-                       spec=Categorical(N_ACTIONS, dtype=torch.int64))
+    ``action_value`` and ``chosen_action_value``; its network is ``network`` (a built module,
+    or an architecture for :func:`build_qnet`; None: Table I for ``frames`` and ``size``)."""
+    if isinstance(network, nn.Module):
+        net = network
+    elif network is None:
+        net = QNetwork(frames, size, pool_first=pool_first)
+    else:
+        net = build_qnet(network, pool_first=pool_first)
+    n_actions = int(getattr(net, "arch", {}).get("n_actions", N_ACTIONS))
+    return QValueActor(net, in_keys=["pixels"], spec=Categorical(n_actions, dtype=torch.int64))
