@@ -9,7 +9,7 @@ from hydra.core.config_store import ConfigStore
 
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.loop import Trainer
-from memrl.dqn.losses import MarginTerm
+from memrl.dqn.losses import MarginTerm, TDTerm
 from memrl.modes import MODES, ModeSpec, StageSpec, by_label, register_mode, used
 from memrl.schemas import STUDY_MODES
 from memrl.train import train
@@ -200,3 +200,32 @@ def test_the_stage_losses_equal_the_formula_before_loss_terms(compose_cfg, tmp_p
                 margins = torch.full_like(q, float(cfg.mode.stage1.margin)).scatter_(-1, a, 0.0)
                 expected = expected + w * ((q + margins).max(-1).values - q.gather(-1, a).squeeze(-1)).mean()
         assert float(expected) == loss, stage
+
+
+def test_a_demo_only_batch_costs_one_online_forward_and_keeps_the_margin_gradient(demos):
+    """Mode B's stage 1 (every row a demo): the margin term reuses the TD term's Q(s, .), so
+    the network runs 3 times per loss (online s, online s', target s'), not 4; the loss is the
+    same value and the gradient the same up to float32 summation order."""
+    from memrl.dqn.config import AgentConfig
+    from memrl.dqn.learner import Learner
+
+    torch.manual_seed(0)
+    learner = Learner(AgentConfig(precision="float32"))
+    learner.start_stage((TDTerm(), MarginTerm(3.0, 0.8)))
+    batch = demos[:16].clone()
+    assert bool(batch["is_demo"].all())
+    calls = []
+    handle = learner.qnet.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
+    loss = learner.loss(batch)
+    handle.remove()
+    assert calls == [16, 16, 16]
+    loss.backward()
+    shared = {n: p.grad.clone() for n, p in learner.qnet.named_parameters()}
+    learner.qnet.zero_grad(set_to_none=True)
+    # the two-forward formula: eq. (1) and the margin loss on its own forward of the demo rows
+    separate = 0.5 * learner.loss_module(batch)["loss"] + MarginTerm(3.0, 0.8)(
+        batch, learner.loss_module, learner.qnet)
+    assert float(separate) == float(loss)
+    separate.backward()
+    for name, p in learner.qnet.named_parameters():
+        assert torch.allclose(p.grad, shared[name], rtol=1e-4, atol=1e-7), name

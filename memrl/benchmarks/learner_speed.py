@@ -41,8 +41,14 @@ OPTIONS = ("threads", "channels_last", "compile", "pool_first", "precision")
 """The learner speed options of ``agent`` (``conf/agent/dqn.yaml``)."""
 LEARNING_OPTIONS: dict[str, dict[str, Any]] = {
     "augment_shift_4": {"agent": {"augment_shift": 4}},
+    "dueling": {"network": {"_target_": "memrl.modules.qnet.DuelingQNetwork"}},
+    "layernorm": {"network": {"layernorm": True}},
+    "layernorm_convs": {"network": {"layernorm": True, "layernorm_convs": True}},
+    "stage1_margin": {"stage1": True},
 }
-"""Learning options timed beside the default (``learning=true``): name -> config values."""
+"""Learning options timed beside the default (``learning=true``): name -> ``agent`` values,
+``network`` values (over Table I's), or ``stage1``: mode B's stage-1 update (every row a demo,
+DQfD's margin term at its default weight, as :mod:`memrl.modes` declares it)."""
 
 
 def default_agent_cfg() -> DictConfig:
@@ -116,16 +122,25 @@ def bare_step(agent: DictConfig, batch: dict[str, torch.Tensor], seed: int) -> C
     return step
 
 
-def memrl_step(agent: DictConfig, buffer: Any, seed: int) -> Callable[[], float]:
-    """The training loop's update: sample from the replay buffer, ``Learner.update``."""
+def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any] | None = None,
+               stage1: bool = False) -> Callable[[], float]:
+    """The training loop's update: sample from the replay buffer, ``Learner.update`` (``network``:
+    the architecture; ``stage1``: every sampled row a demo, with the margin term)."""
     from memrl.dqn.learner import Learner
+    from memrl.dqn.losses import MarginTerm, TDTerm
+    from memrl.modules.qnet import TABLE1
 
     torch.manual_seed(seed)
-    learner = Learner(agent)
+    learner = Learner(agent, network={**TABLE1, **(network or {})})
+    if stage1:
+        learner.start_stage((TDTerm(), MarginTerm(3.0, 0.8)))
     batch_size = int(agent.batch_size)
 
     def step() -> float:
-        return learner.update(buffer.sample(batch_size))
+        batch = buffer.sample(batch_size)
+        if stage1:  # the same rows, marked as demos (stage 1 samples only prior knowledge)
+            batch["is_demo"] = torch.ones(batch.shape, dtype=torch.bool)
+        return learner.update(batch)
 
     return step
 
@@ -185,16 +200,19 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
             flipped = "float32" if str(tuned.precision) != "float32" else "bfloat16"
             specs[f"memrl_precision_{flipped}"] = (agent_variant(tuned_b, precision=flipped),
                                                    "memrl")
+        options: dict[str, dict[str, Any]] = {}
         if learning and b_i == 0:
             for name, values in LEARNING_OPTIONS.items():
                 specs[f"memrl_{name}"] = (agent_variant(tuned_b, **values.get("agent", {})), "memrl")
+                options[f"memrl_{name}"] = values
         steps: dict[str, Callable[[], float]] = {}
         figures: dict[str, dict[str, Any]] = {}
         for name, (agent, kind) in specs.items():
             torch.set_num_threads(_threads(int(agent.threads)))
             start = time.perf_counter()
+            extra = options.get(name, {})
             steps[name] = (bare_step(agent, data, seed) if kind == "bare" else
-                           memrl_step(agent, rb, seed))
+                           memrl_step(agent, rb, seed, extra.get("network"), bool(extra.get("stage1"))))
             for _ in range(warmup_updates):  # first calls allocate (and compile, if asked)
                 steps[name]()
             figures[name] = {"threads": _threads(int(agent.threads)),
@@ -214,6 +232,8 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
         for a, b in (("memrl_tuned", "bare_tuned"), ("memrl_naive", "bare_naive"),
                      ("memrl_tuned", "bare_naive"), ("bare_tuned", "bare_naive")):
             out[f"ratio_{a}_to_{b}"] = round(rate[a] / rate[b], 3)
+        for name in options:  # each learning option's speed relative to the default
+            out[f"ratio_{name}_to_memrl_tuned"] = round(rate[name] / rate["memrl_tuned"], 3)
         res[f"batch_{batch_size}"] = out
     torch.set_num_threads(DEFAULT_THREADS)
     return res

@@ -111,11 +111,24 @@ class Learner:
         on the batch shifted by ``augment_shift`` pixels (when > 0)."""
         if self.augment_shift > 0:
             batch = shift_batch(batch, self.augment_shift, self.shift_generator)
+        pixels, seen = batch["pixels"], {}
+
+        def online_q(module: torch.nn.Module, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+            """Keep the online Q-values of ``pixels`` that DQNLoss computes with gradients."""
+            if inputs and inputs[0] is pixels and torch.is_grad_enabled() and output.requires_grad:
+                seen.setdefault("q", output)
+
+        # A hook on this call only: TorchRL's DQNLoss does not return its Q(s, .), and a hook
+        # kept on the module would be copied with it (the acting copy of overlap mode).
+        handle = self.qnet.register_forward_hook(online_q)
         total: torch.Tensor | None = None
-        for term in self.terms:
-            value = term(batch, self.loss_module, self.qnet)
-            if value is not None:
-                total = value if total is None else total + value
+        try:
+            for term in self.terms:
+                value = term(batch, self.loss_module, self.qnet, seen.get("q"))
+                if value is not None:
+                    total = value if total is None else total + value
+        finally:
+            handle.remove()
         if total is None:
             raise ValueError(f"no loss term applies to this batch (terms: {[t.name for t in self.terms]})")
         return total

@@ -21,10 +21,12 @@ class LossTerm(Protocol):
 
     name: str
 
-    def __call__(self, batch: TensorDictBase, loss_module: nn.Module,
-                 qnet: nn.Module) -> torch.Tensor | None:
+    def __call__(self, batch: TensorDictBase, loss_module: nn.Module, qnet: nn.Module,
+                 q_online: torch.Tensor | None = None) -> torch.Tensor | None:
         """The term's weighted value on ``batch`` (differentiable); None where it does not
-        apply to this batch (adds nothing, not even a zero)."""
+        apply to this batch (adds nothing, not even a zero). ``q_online``: the online
+        Q-values of the whole batch's ``pixels`` as an earlier term computed them (with their
+        gradient graph), None when none did."""
 
 
 @dataclass(frozen=True)
@@ -36,7 +38,8 @@ class TDTerm:
     weight: float = 1.0
     name: str = "td"
 
-    def __call__(self, batch: TensorDictBase, loss_module: nn.Module, qnet: nn.Module) -> torch.Tensor:
+    def __call__(self, batch: TensorDictBase, loss_module: nn.Module, qnet: nn.Module,
+                 q_online: torch.Tensor | None = None) -> torch.Tensor:
         return self.weight * 0.5 * loss_module(batch)["loss"]
 
 
@@ -51,14 +54,16 @@ class MarginTerm:
     """[Q units] by which the demo action must beat every other action."""
     name: str = "margin"
 
-    def __call__(self, batch: TensorDictBase, loss_module: nn.Module,
-                 qnet: nn.Module) -> torch.Tensor | None:
+    def __call__(self, batch: TensorDictBase, loss_module: nn.Module, qnet: nn.Module,
+                 q_online: torch.Tensor | None = None) -> torch.Tensor | None:
         if "is_demo" not in batch.keys():
             return None
         demo = batch["is_demo"].reshape(-1)
         if not bool(demo.any()):
             return None
-        q = qnet(batch["pixels"][demo])
+        # A batch of demos only (mode B's stage 1): the TD term's forward of the same pixels
+        # serves, one forward and backward instead of two; else a forward of the demo rows.
+        q = q_online if q_online is not None and bool(demo.all()) else qnet(batch["pixels"][demo])
         a = batch["action"][demo].reshape(-1, 1)
         margins = torch.full_like(q, self.margin).scatter_(-1, a, 0.0)
         excess = (q + margins).max(-1).values - q.gather(-1, a).squeeze(-1)
