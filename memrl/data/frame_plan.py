@@ -168,8 +168,12 @@ def not_shifted_message(row: int) -> str:
 
 
 def count_frames(data: TensorDictBase, pixels_key: str = "pixels", chunk: int = 512,
-                 streams: int = 1) -> int:
-    """Frames that storing ``data`` (in order, into an empty store) pushes into the ring."""
+                 streams: int = 1, stride: int = 1) -> int:
+    """Frames that storing ``data`` (in order, into an empty store) pushes into the ring
+    (``stride`` frames between the stacked frames)."""
+    if stride != 1:
+        from memrl.data.stride_plan import count_strided  # noqa: PLC0415  (a small module)
+        return count_strided(data, pixels_key, streams, stride)
     if len(data) % streams:
         raise ValueError(f"{len(data)} rows are not whole steps of {streams} streams")
     ops, head = Pixels(numpy=True), 0

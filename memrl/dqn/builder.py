@@ -62,14 +62,18 @@ def build_stage(name: str, cfg: DictConfig, learner: Learner, demos: TensorDictB
     capacity, batch = int(cfg.buffer.capacity), int(a.batch_size)
     compact = bool(cfg.buffer.get("compact", True))  # each frame stored once
     store: dict[str, Any] = {"compact": compact, "streams": num_envs, "device": device}
+    nstep = {"n_step": int(a.get("n_step", 1)), "gamma": float(a.gamma)}  # memrl.data.nstep
+    if int(cfg.env.get("frame_stride", 1)) != 1:  # frames between stacked frames
+        nstep["stride"] = int(cfg.env.frame_stride)
     learner.margin_weight = 0.0
     if name == "B1":
         assert demos is not None
         learner.margin_weight, learner.margin = float(m.stage1.margin_weight), float(m.stage1.margin)
         if m.stage1.lr is not None:  # a resumed run gets the same from the optimizer state
             learner.set_lr(float(m.stage1.lr))
-        train, held_out = split_demos(demos, float(m.stage1.holdout_fraction), int(cfg.seed))
-        return Stage(name, demo_buffer(train, batch, compact=compact, device=device), None,
+        train, held_out = split_demos(demos, float(m.stage1.holdout_fraction), int(cfg.seed),
+                                      keep_order=nstep["n_step"] > 1)
+        return Stage(name, demo_buffer(train, batch, compact=compact, device=device, **nstep), None,
                      held_out.to(device))
     schedule = (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames) if name == "B2" \
         else (a.eps_start, a.eps_end, a.eps_decay_frames)
@@ -85,7 +89,7 @@ def build_stage(name: str, cfg: DictConfig, learner: Learner, demos: TensorDictB
             float(m.stage2.get("margin_weight", 0.0))
         learner.margin = float(m.stage1.margin)
         buffer: Any = PriorKnowledgeBuffer(demos, capacity, share, batch, sampling=str(m.sampling),
-                                           **store)
+                                           **store, **nstep)
     else:
-        buffer = agent_buffer(capacity, batch, **store)
+        buffer = agent_buffer(capacity, batch, **store, **nstep)
     return Stage(name, buffer, explore)
