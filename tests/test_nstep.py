@@ -177,3 +177,53 @@ def test_n_step_below_one_names_the_key(compose_cfg, tmp_path):
 
     with pytest.raises(TrainConfigError, match=r"config 'agent.n_step': must be >= 1, got 0"):
         train(compose_cfg("train", TINY + ["agent.n_step=0"]), tmp_path / "run")
+
+
+@pytest.mark.parametrize("n", [3, 10])
+def test_real_collector_data_on_four_envs_matches_the_reference(compose_cfg, n):
+    from memrl.dqn.collector import Collector
+    from memrl.envs.vehicles import N_ACTIONS
+    from tests.helpers import TINY
+
+    cfg = compose_cfg("train", TINY + ["env.duration=10"])
+    collector = Collector(cfg.env, 4, torch.device("cpu"), seed=5)
+    gen = torch.Generator().manual_seed(0)
+
+    def act(td, _frames):  # env 0 steers left into the wall, env 1 drives on, 2-3 at random
+        a = torch.randint(N_ACTIONS, (4,), generator=gen)
+        a[0], a[1] = 3, 4
+        td["action"] = a
+
+    steps = collector.collect(act, 36, 0).transitions
+    collector.close()
+    flags = torch.stack([s["next", "terminated"] for s in steps])
+    assert flags[:, 0].any() and (torch.stack([s["next", "truncated"] for s in steps])).any()
+    for compact in (True, False):
+        rb = agent_buffer(400, 8, compact=compact, streams=4, n_step=n, gamma=0.95)
+        for td in steps:
+            rb.extend(td)
+        got, want = all_rows(rb), reference(steps, n, 0.95)
+        for i, w in enumerate(want):
+            assert torch.equal(got["next", "reward"][i], w["reward"]), i
+            assert int(got[STEPS_KEY][i]) == w["m"]
+            assert bool(got["next", "terminated"][i]) == w["terminated"]
+            assert torch.equal(got["next", "pixels"][i], w["next_pixels"]), i
+        assert {w["m"] for w in want} >= {1, n}  # full windows and ones cut by an end
+
+
+def test_the_learner_loss_is_eq_1_on_the_n_step_target():
+    steps = episode([1, 2, 4, 8], "crash", size=84) + episode([16, 32, 64], "limit", 100, size=84)
+    rb = agent_buffer(100, 4, compact=True, n_step=3, gamma=G)
+    for td in steps:
+        rb.extend(td)
+    batch = all_rows(rb)
+    learner = Learner(AgentConfig(gamma=G))
+    with torch.no_grad():  # double DQN: the online net picks, the target net (a copy now) values
+        q_next = learner.qnet(batch["next", "pixels"])
+        v = q_next.gather(1, q_next.argmax(1, keepdim=True))
+        m, term = batch[STEPS_KEY], batch["next", "terminated"]
+        target = batch["next", "reward"] + G ** m * v * (~term)
+        q = learner.qnet(batch["pixels"]).gather(1, batch["action"].reshape(-1, 1))
+        hand = 0.5 * ((q - target) ** 2).mean()
+        assert m.reshape(-1).tolist() == [3, 3, 2, 1, 3, 2, 1]
+        torch.testing.assert_close(learner.loss(batch.clone()), hand, rtol=1e-6, atol=0)
