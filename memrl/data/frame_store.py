@@ -22,23 +22,32 @@ consecutive steps, step-major), and a write whose row count is not a multiple of
   ``CatFrames(padding="same")``, or any stack): its distinct consecutive frames are pushed
   (1 for a reset stack, at most 4), plus the new frame.
 
-Ring size bound (default ``2 max_size - 1 + (2 S - 1) stack``; ``2 max_size + stack - 1`` for
-one stream). Env data pushes at most 2 frames per row (1 for a continuation, 2 for an episode
+Strided stacks (``stride`` k > 1, ``env.frame_stride``): a stack is ``[f(t-3k), f(t-2k),
+f(t-k), f(t)]`` and consecutive stacks share no frame, so each stream keeps the refs of its last
+``D = (stack - 1) k + 1`` frames and both stacks of a transition are read from them
+(:mod:`memrl.data.stride_plan`; ``2 stack`` refs per transition). Pushes are as above: 1 per
+continuation (its new frame), 2 for an episode start (the reset frame, standing for every
+``f(s < 0)``, then the new frame), in row order. At k = 1, ``D = stack``.
+
+Ring size bound (default ``2 max_size - 1 + (2 S - 1) D``; ``2 max_size + D - 1`` for one
+stream). Env data pushes at most 2 frames per row (1 for a continuation, 2 for an episode
 start). Count rows in write order; take a live row ``x`` of stream ``s``.
 
-- Its oldest frame: if it starts an episode, its own first push. If it continues, it is the
-  new frame of row ``x - stack S`` at the earliest (rows ``x - (stack - 1) S, ..., x`` of the
-  same stream continue, reset frames are newer), and those ``stack`` rows push 1 frame each.
+- Its oldest frame: if its episode started within its stack's span, the reset frame, first
+  push of that start row, at or after row ``x - (D - 1) S``. Otherwise it is ``f(t - D + 1)``,
+  the new frame of row ``x - D S`` (that stream's step ``t - D``), and rows ``x - (D - 1) S,
+  ..., x`` of the same stream continue and push 1 frame each.
 - With a FIFO writer, ``x`` is live after a write while at most ``max_size - 1`` rows follow
   it. From that oldest frame (excluded) to the end of such a write there are at most
-  ``stack S + max_size - 1`` rows, pushing at most ``2 (stack S + max_size - 1) - stack``.
+  ``D S + max_size - 1`` rows, pushing at most ``2 (D S + max_size - 1) - D``.
 - A frame with counter ``c`` is intact while ``c >= head - ring_size``, hence
-  ``ring_size >= 2 max_size - 1 + (2 S - 1) stack`` (episode start: ``>= 2 max_size``).
+  ``ring_size >= 2 max_size - 1 + (2 S - 1) D`` (episode start: ``>= 2 max_size``).
 
-No fewer frames do: stream 0 continues for ``stack + 1`` steps while every other row of the
-data is a one-step episode (tested for 1, 3 and 16 streams). At 84x84 and ``max_size`` 100,000
-that is 200,003 frames = 1.41 GB for one stream and 200,123 for 16, against 5.6 GB for two
-full stacks per transition. A write that would overwrite a frame still referenced (data that
+No fewer frames do: stream 0 continues for ``D + 1`` steps while every other row of the data
+is a one-step episode (tested for 1, 3 and 16 streams at k = 1, 1 and 3 streams at k = 3).
+At 84x84 and ``max_size`` 100,000 that is
+200,003 frames = 1.41 GB for one stream and 200,123 for 16 (k = 3: 200,009 and 200,309),
+against 5.6 GB for two full stacks per transition. A write that would overwrite a frame still referenced (data that
 pushes more, e.g. shuffled mid-episode stacks, or a smaller ring) raises
 :class:`FrameRingOverflow` before anything is changed.
 
