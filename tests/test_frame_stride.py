@@ -129,3 +129,19 @@ def test_strided_demos_fill_a_ring_of_exactly_their_frames():
     demos = rows[keep]
     rb = demo_buffer(demos, compact=True, stride=K)
     assert same(rb.storage.get(torch.arange(len(demos))), demos)
+
+
+def test_a_strided_dataset_saves_each_frame_once_and_loads_back(tmp_path):
+    from memrl.data.demos import load_demos, read_metadata, save_demos
+
+    rows = torch.cat(stream_steps(1, 30, seed=5, max_len=12, size=84, stride=K))
+    rows["action"] = rows["action"] % 9  # in the action range, flagged as demos
+    rows["is_demo"][:] = True
+    path = save_demos([rows[:13], rows[13:]], tmp_path / "d", {"env_config": {}, "frame_stride": K})
+    meta = read_metadata(path)
+    starts = int((rows["pixels"] == rows["pixels"][:, :1]).flatten(1).all(1).sum())
+    assert meta["frame_stride"] == K and meta["counts"]["frames"] == len(rows) + starts
+    assert same(load_demos(path), rows)
+    # the same data recorded at k = 1 is refused (its next stacks are not shifted stacks)
+    with pytest.raises(ValueError, match="shifted by one frame"):
+        save_demos(rows, tmp_path / "e", {"env_config": {}})

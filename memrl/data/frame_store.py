@@ -47,8 +47,8 @@ No fewer frames do: stream 0 continues for ``D + 1`` steps while every other row
 is a one-step episode (tested for 1, 3 and 16 streams at k = 1, 1 and 3 streams at k = 3).
 At 84x84 and ``max_size`` 100,000 that is
 200,003 frames = 1.41 GB for one stream and 200,123 for 16 (k = 3: 200,009 and 200,309),
-against 5.6 GB for two full stacks per transition. A write that would overwrite a frame still referenced (data that
-pushes more, e.g. shuffled mid-episode stacks, or a smaller ring) raises
+against 5.6 GB for two full stacks per transition. A write that would overwrite a frame still
+referenced (data that pushes more, e.g. shuffled mid-episode stacks, or a smaller ring) raises
 :class:`FrameRingOverflow` before anything is changed.
 
 Device. With ``device`` (any torch device) the ring and the per-transition tensors live there,
