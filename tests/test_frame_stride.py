@@ -145,3 +145,15 @@ def test_a_strided_dataset_saves_each_frame_once_and_loads_back(tmp_path):
     # the same data recorded at k = 1 is refused (its next stacks are not shifted stacks)
     with pytest.raises(ValueError, match="shifted by one frame"):
         save_demos(rows, tmp_path / "e", {"env_config": {}})
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_strided_n_step_buffer_on_cuda_equals_the_cpu_one():
+    data = stream_steps(4, 40, seed=11, max_len=12, stride=K)
+    cpu = agent_buffer(100, 8, streams=4, n_step=3, gamma=0.9, stride=K)
+    gpu = agent_buffer(100, 8, streams=4, n_step=3, gamma=0.9, stride=K, device="cuda")
+    for step in data:
+        cpu.extend(step)
+        gpu.extend(step)
+    idx = torch.arange(100)
+    assert same(cpu.storage.get(idx), gpu.storage.get(idx).cpu())

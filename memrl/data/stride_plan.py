@@ -70,7 +70,8 @@ def plan_strided(p: torch.Tensor, q: torch.Tensor, head: int, streams: int, stri
         streams: interleaved streams ``S``.
         stride: k.
         hist: ``[S, span]`` refs of each stream's last frames (-1: unknown); None: none yet.
-        hist_frames: ``[S, span, H, W]`` their content (anything where unknown).
+        hist_frames: ``[S, span, H, W]`` their content (anything where unknown); updated in
+            place (the plan's :attr:`StridePlan.hist_frames` is this tensor).
     """
     n, stack = p.shape[0], p.shape[1]
     sp, dev = span(stack, stride), p.device
@@ -79,7 +80,7 @@ def plan_strided(p: torch.Tensor, q: torch.Tensor, head: int, streams: int, stri
         hist = torch.full((streams, sp), -1, dtype=torch.long, device=dev)
         hist_frames = torch.zeros((streams, sp, *p.shape[2:]), dtype=p.dtype, device=dev)
     assert hist_frames is not None
-    hist, hist_frames = hist.clone(), hist_frames.clone()
+    hist = hist.clone()  # the caller's stays as it was if the write is refused
     refs = torch.empty((n, 2 * stack), dtype=torch.long, device=dev)
     out_refs: list[torch.Tensor] = []
     out_frames: list[torch.Tensor] = []
