@@ -227,3 +227,9 @@ def test_the_learner_loss_is_eq_1_on_the_n_step_target():
         hand = 0.5 * ((q - target) ** 2).mean()
         assert m.reshape(-1).tolist() == [3, 3, 2, 1, 3, 2, 1]
         torch.testing.assert_close(learner.loss(batch.clone()), hand, rtol=1e-6, atol=0)
+
+
+def test_checkpoints_from_before_n_step_resume_as_one_step_runs():
+    from memrl.dqn.checkpoint import with_legacy_values
+
+    assert with_legacy_values({"agent": {"gamma": 0.95}})["agent"]["n_step"] == 1
