@@ -106,32 +106,29 @@ class _NStep:
             idx = torch.arange(len(self))[index] if isinstance(index, slice) \
                 else torch.as_tensor(index).reshape(-1)
             return self.get(idx)
-        size, cap, s = len(self), self.max_size, self.streams  # type: ignore[attr-defined]
+        size, s, n = len(self), self.streams, self.n_step  # type: ignore[arg-type]
+        cap = self.max_size  # type: ignore[attr-defined]
         idx = index.to(torch.long).cpu()
         rows = self._storage.get(ROW_KEY)  # type: ignore[attr-defined]
         flags = self._storage.select(*_SCALARS)  # type: ignore[attr-defined]
-        dev = rows.device
+        dev, b = rows.device, len(idx)
+        ahead = torch.arange(n, device=dev) * s
         first = idx.to(dev)
-        row0 = rows[first]
-        alive = torch.ones(len(idx), dtype=torch.bool, device=dev)
-        done = flags.get(("next", "done"))[first].reshape(-1)
+        cur = (first[:, None] + ahead) % cap  # [B, n]: the stream's next n - 1 slots
+        # slot j holds step t + j of the stream: written j S rows after t (and written at all)
+        ok = (cur < size) & (rows[cur] == rows[first][:, None] + ahead)
+        ok[:, 0] = True
+        done = flags.get(("next", "done"))[cur].reshape(b, n)
+        ok[:, 1:] &= ~done[:, :-1]
+        ok[:, 1:] &= self._continues(cur[:, :-1].reshape(-1), cur[:, 1:].reshape(-1)).reshape(b, -1)
+        alive = ok.long().cumprod(1).bool()  # the window: the run of steps from t on
+        steps = alive.sum(1)
         reward = flags.get(("next", "reward"))[first]
-        total = reward.to(torch.float64)
-        steps = torch.ones(len(idx), dtype=torch.long, device=dev)
-        last, prev = first.clone(), first
-        for j in range(1, self.n_step):
-            cur = (first + j * s) % cap
-            ok = alive & ~done & (cur < size) & (rows[cur] == row0 + j * s)
-            if not bool(ok.any()):
-                break
-            ok &= self._continues(prev, cur)
-            r = flags.get(("next", "reward"))[cur].to(torch.float64)
-            total = torch.where(ok.reshape(-1, *([1] * (r.ndim - 1))), total + self.gamma ** j * r,
-                                total)
-            steps += ok.long()
-            last = torch.where(ok, cur, last)
-            done = torch.where(ok, flags.get(("next", "done"))[cur].reshape(-1), done)
-            alive, prev = ok, cur
+        rewards = flags.get(("next", "reward"))[cur].to(torch.float64)  # [B, n, 1]
+        total = rewards[:, 0]
+        for j in range(1, n):  # left to right, as by hand
+            total = torch.where(alive[:, j, None], total + self.gamma ** j * rewards[:, j], total)
+        last = cur[torch.arange(b, device=dev), steps - 1]
         out = super().get(idx)  # type: ignore[misc]
         if bool((last != first).any()):
             out.set("next", super().get(last.cpu()).get("next"))  # type: ignore[misc]
