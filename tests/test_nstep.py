@@ -233,3 +233,15 @@ def test_checkpoints_from_before_n_step_resume_as_one_step_runs():
     from memrl.dqn.checkpoint import with_legacy_values
 
     assert with_legacy_values({"agent": {"gamma": 0.95}})["agent"]["n_step"] == 1
+
+
+def test_stage_1_keeps_the_dataset_order_for_n_step_windows():
+    from memrl.dqn.stage1 import split_demos
+
+    demos = torch.cat(episode(list(range(20)), "crash"))
+    shuffled, held = split_demos(demos, 0.2, seed=3)
+    ordered, held2 = split_demos(demos, 0.2, seed=3, keep_order=True)
+    assert (held == held2).all()  # the same demos held out
+    rewards = ordered["next", "reward"].reshape(-1)
+    assert torch.equal(rewards, rewards.sort().values)
+    assert sorted(shuffled["next", "reward"].reshape(-1).tolist()) == rewards.tolist()

@@ -40,7 +40,7 @@ def _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch, extra):
 BASE = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3", "agent.n_step=3"]
 
 
-@pytest.mark.parametrize("mode", [None, "A"])
+@pytest.mark.parametrize("mode", [None, "A", "B"])
 def test_n_step_run_killed_and_resumed_equals_an_uninterrupted_one(
         compose_cfg, tmp_path, demos, monkeypatch, mode):
     _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch,
