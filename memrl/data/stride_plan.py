@@ -112,19 +112,19 @@ def plan_strided(p: torch.Tensor, q: torch.Tensor, head: int, streams: int, stri
                 hist[s] = -1
                 hist[s, cols] = ids[torch.cumsum(new.long(), 0) - 1]
                 hist_frames[s, cols] = frames
-        refs[start + sel, :stack] = hist[sel][:, cols]
+        refs[start + sel, :stack] = hist[sel[:, None], cols]
         newest = push(qi[:, -1])
         hist[sel] = torch.cat([hist[sel, 1:], newest[:, None]], 1)
         hist_frames[sel] = torch.cat([hist_frames[sel, 1:], qi[:, -1:]], 1)
-        known_next = hist[sel][:, cols] >= 0
-        same = (hist_frames[sel][:, cols] == qi).flatten(2).all(2)
+        known_next = hist[sel[:, None], cols] >= 0
+        same = (hist_frames[sel[:, None], cols] == qi).flatten(2).all(2)
         if bad < 0 and bool((known_next & ~same).any()):
             bad = start + int(sel[torch.nonzero((known_next & ~same).any(1))[0, 0]])
         for i, j in torch.nonzero(~known_next).tolist():  # never for env data
             s = int(sel[i])
             hist[s, cols[j]] = push(qi[i, j:j + 1])[0]
             hist_frames[s, cols[j]] = qi[i, j]
-        refs[start + sel, stack:] = hist[sel][:, cols]
+        refs[start + sel, stack:] = hist[sel[:, None], cols]
 
     every = torch.arange(streams, device=dev)
     for start in range(0, n, streams):
