@@ -182,13 +182,11 @@ def _rows(command: str, node: DictConfig, prefix: str, rows: list[tuple[str, ...
 
 
 def command_rows(command: str) -> list[tuple[str, ...]]:
-    """(key, type, default, range, doc) of every key of ``conf/<command>.yaml`` composed as is."""
+    """(key, type, default, range, doc) of every key of ``conf/<command>.yaml`` composed as is
+    (memrl's schemas registered: :func:`memrl.configs.register_configs`)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from memrl.configs import register_configs
-
-    register_configs()
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name=command, overrides=[], return_hydra_config=False)

@@ -45,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from memrl.config_reference import markdown
 
+    register_configs()
     sys.stdout.write(markdown())
     return 0
 

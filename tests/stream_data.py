@@ -18,7 +18,7 @@ def frame(k: int, size: int) -> np.ndarray:
 
 
 def stream_steps(streams: int, steps: int, seed: int = 0, max_len: int = 12, size: int = 4,
-                 lengths: list[list[int]] | None = None) -> list[TensorDict]:
+                 lengths: list[list[int]] | None = None, stride: int = 1) -> list[TensorDict]:
     """``steps`` writes of ``streams`` rows; each env runs episodes of random lengths.
 
     Args:
@@ -28,26 +28,32 @@ def stream_steps(streams: int, steps: int, seed: int = 0, max_len: int = 12, siz
         max_len: longest random episode.
         size: frame height and width.
         lengths: per env, the episode lengths to run first (then random ones).
+        stride: k, stacks ``[f(t-3k), f(t-2k), f(t-k), f(t)]`` (``f(s) = f(0)`` for s < 0).
     """
     rng = np.random.default_rng(seed)
     queue = [list(x) for x in lengths] if lengths is not None else [[] for _ in range(streams)]
     left = [0] * streams  # steps left in each env's episode
-    stack = [[0] * STACK for _ in range(streams)]
+    seen = [[0] for _ in range(streams)]  # each env's frame ids this episode, oldest first
+    span = (STACK - 1) * stride + 1
+
+    def strided(ids: list[int]) -> list[int]:
+        ids = [ids[0]] * max(0, span - len(ids)) + ids[-span:]
+        return ids[::stride]
+
     next_id, row_id, out = 1, 0, []
     for _ in range(steps):
         p, q, done = [], [], []
         for s in range(streams):
             if left[s] == 0:  # reset: the reset frame repeated
                 left[s] = queue[s].pop(0) if queue[s] else int(rng.integers(1, max_len + 1))
-                stack[s] = [next_id] * STACK
+                seen[s] = [next_id]
                 next_id += 1
-            nxt = stack[s][1:] + [next_id]
+            p.append(strided(seen[s]))
+            seen[s].append(next_id)
             next_id += 1
-            p.append(stack[s])
-            q.append(nxt)
+            q.append(strided(seen[s]))
             left[s] -= 1
             done.append(left[s] == 0)
-            stack[s] = nxt
         frames = lambda ids: torch.from_numpy(  # noqa: E731
             np.stack([np.stack([frame(k, size) for k in row]) for row in ids]))
         d = torch.tensor(done)[:, None]

@@ -210,7 +210,9 @@ def test_relative_links_resolve():
 
 def test_configuration_reference_is_generated():
     from memrl.config_reference import markdown
+    from memrl.configs import register_configs
 
+    register_configs()
     assert (ROOT / "docs" / "configuration.md").read_text() == markdown(), (
         "docs/configuration.md is stale: python -m memrl.configs --markdown > docs/configuration.md")
 

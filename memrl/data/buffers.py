@@ -24,18 +24,24 @@ batches come back on ``device``).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
+from torchrl.data import ReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.offline_to_online import OfflineToOnlineReplayBuffer
 from torchrl.data.replay_buffers.storages import Storage
 
-from memrl.data.frame_store import FrameStackStorage, count_frames
+from memrl.data.frame_store import count_frames
+from memrl.data.nstep import nstep_storage
+
+NStep = dict[str, Any]
+"""``n_step`` (steps summed at most, 1: 1-step), ``gamma`` and ``stride`` (frames between the
+stacked frames) of a buffer's storage; see :mod:`memrl.data.nstep`."""
 
 
 def agent_storage(capacity: int, compact: bool = True, streams: int = 1,
-                  device: torch.device | str = "cpu") -> Storage:
+                  device: torch.device | str = "cpu", **nstep: Any) -> Storage:
     """Storage of ``capacity`` agent transitions: a frame ring (each frame once) or full stacks.
 
     Args:
@@ -43,29 +49,32 @@ def agent_storage(capacity: int, compact: bool = True, streams: int = 1,
         compact: the frame ring (:class:`FrameStackStorage`), else full stacks.
         streams: envs writing interleaved rows (row ``r`` of a write is env ``r % streams``).
         device: where the transitions are stored and sampled.
+        **nstep: ``n_step``, ``gamma``, ``stride`` (:data:`NStep`).
     """
-    if compact:
-        return FrameStackStorage(capacity, streams=streams, device=device)
-    return LazyTensorStorage(capacity, device=device)
+    return nstep_storage(capacity, compact=compact, streams=streams, device=device, **nstep)
 
 
 def agent_buffer(capacity: int, batch_size: int, compact: bool = True, streams: int = 1,
-                 device: torch.device | str = "cpu") -> TensorDictReplayBuffer:
+                 device: torch.device | str = "cpu", **nstep: Any) -> TensorDictReplayBuffer:
     """FIFO replay of the agent's own transitions, uniform sampling (see :func:`agent_storage`)."""
-    return TensorDictReplayBuffer(storage=agent_storage(capacity, compact, streams, device),
-                                  batch_size=batch_size)
+    return TensorDictReplayBuffer(
+        storage=agent_storage(capacity, compact, streams, device, **nstep), batch_size=batch_size)
 
 
 def demo_buffer(demos: TensorDictBase, batch_size: int | None = None,
-                compact: bool = True, device: torch.device | str = "cpu") -> ReplayBuffer:
+                compact: bool = True, device: torch.device | str = "cpu",
+                **nstep: Any) -> ReplayBuffer:
     """A buffer filled with ``demos`` (its capacity is their count: nothing else gets in).
 
     Demos arrive as full stacks (:func:`memrl.data.demos.load_demos` rebuilds them from either
     dataset format); a compact buffer converts them on entry, with a ring of exactly the frames
-    they need (they are written once).
+    they need (they are written once). With ``n_step > 1`` consecutive demos of an episode are
+    sampled as n-step windows (:mod:`memrl.data.nstep`).
     """
-    storage: Storage = (FrameStackStorage(len(demos), frames=count_frames(demos), device=device)
-                        if compact else LazyTensorStorage(len(demos), device=device))
+    stride = int(nstep.get("stride", 1))
+    frames = count_frames(demos, stride=stride) if compact else None
+    storage: Storage = nstep_storage(len(demos), compact=compact, device=device, frames=frames,
+                                     **nstep)
     rb = ReplayBuffer(storage=storage, batch_size=batch_size)
     rb.extend(demos)
     return rb
@@ -85,19 +94,21 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
         streams: envs writing the agent part together (one ``extend`` of ``streams`` rows per
             env step).
         device: where both parts store and sample.
+        **nstep: ``n_step``, ``gamma``, ``stride`` of both parts (:data:`NStep`).
     """
 
     def __init__(self, demos: TensorDictBase, capacity: int, demo_fraction: float,
                  batch_size: int, sampling: str = "stratified", compact: bool = True,
-                 streams: int = 1, device: torch.device | str = "cpu") -> None:
+                 streams: int = 1, device: torch.device | str = "cpu", **nstep: Any) -> None:
         if sampling not in ("stratified", "proportional"):
             raise ValueError(f"sampling must be stratified or proportional, got {sampling!r}")
         n_demo = int(round(demo_fraction * capacity))
         if len(demos) == 0:
             raise ValueError("mode A needs at least one prior-knowledge transition")
         kept = demos[: min(n_demo, len(demos))]
-        super().__init__(demo_buffer(kept, compact=compact, device=device),
-                         online_storage=agent_storage(capacity - n_demo, compact, streams, device),
+        super().__init__(demo_buffer(kept, compact=compact, device=device, **nstep),
+                         online_storage=agent_storage(capacity - n_demo, compact, streams, device,
+                                                      **nstep),
                          offline_fraction=demo_fraction, batch_size=batch_size)
         self.sampling = sampling
         self.capacity = capacity

@@ -51,6 +51,7 @@ from memrl.data.demo_checks import (
 from memrl.data.frame_plan import Pixels, not_shifted_message, plan_write
 from memrl.data.frame_store import REFS_KEY
 from memrl.data.recipe import recipe_hash
+from memrl.data.stride_plan import not_strided_message, plan_strided
 from memrl.envs.config import LaneChangeConfig, validate_env_config
 from memrl.envs.torchrl_env import env_kwargs
 
@@ -97,7 +98,8 @@ def _canonical(value: Any) -> Any:
     return value
 
 
-LATER_KEYS: dict[tuple[str, ...], Any] = {("bev", "path_length"): 0.0, ("frame_stack",): 1}
+LATER_KEYS: dict[tuple[str, ...], Any] = {("bev", "path_length"): 0.0, ("frame_stack",): 1,
+                                          ("frame_stride",): 1}
 """Env keys added after datasets were first recorded, with the value that draws what older
 versions drew: at that value a key is left out of the hash, so older datasets (and their
 hashes) stay valid; any other value changes the hash."""
@@ -143,13 +145,22 @@ def transition_spec(env_cfg: EnvCfg, frame_stack: int = 4) -> dict[str, tuple[li
     }
 
 
-def stored_spec(spec: dict[str, tuple[list[int], str]]) -> dict[str, tuple[list[int], str]]:
+def stored_spec(spec: dict[str, tuple[list[int], str]],
+                stride: int = 1) -> dict[str, tuple[list[int], str]]:
     """Per-transition files of format 2: :func:`transition_spec` with both stacks replaced by
-    ``frame_refs`` (``stack + 1`` indices into ``frames/``)."""
+    ``frame_refs`` (``stack + 1`` indices into ``frames/``; ``2 stack`` for strided stacks)."""
     stack = spec["pixels"][0][0]
     out = {k: v for k, v in spec.items() if k not in ("pixels", "next/pixels")}
-    out[REFS_KEY] = ([stack + 1], "int64")
+    out[REFS_KEY] = ([stack + 1 if stride == 1 else 2 * stack], "int64")
     return out
+
+
+def frame_stride(env_cfg: EnvCfg, metadata: Mapping[str, Any] | None = None) -> int:
+    """Frames between stacked frames of a dataset: its metadata's ``frame_stride``, else the env
+    config's ``frame_stride``, else 1 (datasets recorded before strided stacks)."""
+    if metadata is not None and "frame_stride" in metadata:
+        return int(metadata["frame_stride"])
+    return int(getattr(_env_values(env_cfg), "frame_stride", 1))
 
 
 def _key(name: str) -> tuple[str, ...]:
@@ -186,13 +197,17 @@ def _fsync_tree(folder: Path) -> None:
                 os.close(fd)
 
 
-def compact_frames(chunks: Sequence[TensorDictBase]) -> tuple[torch.Tensor, list[TensorDictBase]]:
+def compact_frames(chunks: Sequence[TensorDictBase],
+                   stride: int = 1) -> tuple[torch.Tensor, list[TensorDictBase]]:
     """Every frame of the chunks once, and the chunks with their two stacks replaced by
     ``frame_refs`` into those frames (the frame ring's plan, with a ring as large as the data).
 
     Raises:
-        ValueError: where ``("next", "pixels")`` is not ``pixels`` shifted by one frame.
+        ValueError: where ``("next", "pixels")`` is not ``pixels`` shifted by one frame (by
+            one step of ``stride`` frames apart stacks).
     """
+    if stride != 1:
+        return _compact_strided(chunks, stride)
     ops, head, prev_refs, prev_stack = Pixels(numpy=True), 0, None, None
     frames: list[np.ndarray] = []
     out: list[TensorDictBase] = []
@@ -211,6 +226,26 @@ def compact_frames(chunks: Sequence[TensorDictBase]) -> tuple[torch.Tensor, list
         rest.set(REFS_KEY, torch.from_numpy(plan.refs))
         out.append(rest)
     return torch.from_numpy(np.concatenate(frames)), out
+
+
+def _compact_strided(chunks: Sequence[TensorDictBase],
+                     stride: int) -> tuple[torch.Tensor, list[TensorDictBase]]:
+    """:func:`compact_frames` of strided stacks: ``2 stack`` refs per transition."""
+    head, hist, hist_frames, start = 0, None, None, 0
+    frames: list[torch.Tensor] = []
+    out: list[TensorDictBase] = []
+    for chunk in chunks:
+        plan = plan_strided(chunk.get("pixels"), chunk.get(("next", "pixels")), head, 1, stride,
+                            hist, hist_frames)
+        if plan.bad >= 0:
+            raise ValueError(not_strided_message(start + plan.bad, stride))
+        frames.append(plan.pushed)  # in counter order
+        head, hist, hist_frames = head + len(plan.pushed), plan.hist, plan.hist_frames
+        start += chunk.shape[0]
+        rest = chunk.exclude(*PIXELS)
+        rest.set(REFS_KEY, plan.refs)
+        out.append(rest)
+    return torch.cat(frames), out
 
 
 def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.PathLike,
@@ -248,8 +283,11 @@ def save_demos(td: TensorDictBase | Sequence[TensorDictBase], path: str | os.Pat
     total = sum(c.shape[0] for c in chunks)
     if total == 0:
         raise ValueError("save_demos: no transitions to save")
-    frames, stored = compact_frames(chunks)
+    stride = frame_stride(env_config, metadata)
+    frames, stored = compact_frames(chunks, stride)
     meta = dict(metadata)
+    if stride != 1:  # datasets of k = 1 keep the older metadata
+        meta["frame_stride"] = stride
     meta.update(
         format_version=FORMAT_VERSION,
         env_config=dataclasses.asdict(_env_values(env_config)),
@@ -374,20 +412,21 @@ def _load_v1(path: Path, spec: dict[str, tuple[list[int], str]], count: int) -> 
 
 
 def _load_v2(path: Path, spec: dict[str, tuple[list[int], str]], count: int,
-             frames: int) -> TensorDictBase:
+             frames: int, stride: int = 1) -> TensorDictBase:
     """Format 2: frames once plus refs; both stacks gathered into memory (numpy's gather)."""
     root = path / TRANSITIONS_DIR
-    check_files(root, stored_spec(spec), count)
+    check_files(root, stored_spec(spec, stride), count)
     shape, dtype = spec["pixels"]
     ring = _read_frames(path / FRAMES_FILE, [frames, *shape[1:]], dtype)
-    td = _map(root, stored_spec(spec))
+    td = _map(root, stored_spec(spec, stride))
     check_values(td, root)
     refs = td.get(REFS_KEY)
     check_frame_refs(refs, frames, tensor_file(root, REFS_KEY))
     stack, slots = spec["pixels"][0][0], refs.numpy()
     out = td.exclude(REFS_KEY).to_tensordict()
     out.set("pixels", torch.from_numpy(ring[slots[:, :stack]]))
-    out.set(("next", "pixels"), torch.from_numpy(ring[slots[:, 1:]]))
+    nxt = slots[:, stack:] if stride != 1 else slots[:, 1:]
+    out.set(("next", "pixels"), torch.from_numpy(ring[nxt]))
     return out
 
 
@@ -420,7 +459,8 @@ def load_demos(path: str | os.PathLike, env_cfg: EnvCfg = None) -> TensorDict:
     count = _count(file, meta, "transitions")
     if meta["format_version"] == 1:
         return _load_v1(path, spec, count)  # type: ignore[return-value]
-    return _load_v2(path, spec, count, _count(file, meta, "frames"))  # type: ignore[return-value]
+    return _load_v2(path, spec, count, _count(file, meta, "frames"),  # type: ignore[return-value]
+                    frame_stride(meta["env_config"], meta))
 
 
 def dataset_bytes(path: str | os.PathLike) -> int:

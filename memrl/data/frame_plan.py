@@ -19,14 +19,18 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
+from memrl.data.stride_plan import count_strided
 
-def ring_frames(max_size: int, stack: int = 4, streams: int = 1) -> int:
+
+def ring_frames(max_size: int, stack: int = 4, streams: int = 1, stride: int = 1) -> int:
     """Frames a FIFO store of ``max_size`` env transitions from ``streams`` streams needs.
 
-    ``2 max_size - 1 + (2 streams - 1) stack`` (``2 max_size + stack - 1`` for one stream):
-    the bound of :mod:`memrl.data.frame_store`, tight.
+    ``2 max_size - 1 + (2 streams - 1) D`` with ``D = (stack - 1) stride + 1`` the frames a
+    stack spans (``D = stack`` at stride 1; ``2 max_size + D - 1`` for one stream): the bound
+    of :mod:`memrl.data.frame_store`, tight.
     """
-    return 2 * int(max_size) - 1 + (2 * int(streams) - 1) * int(stack)
+    d = (int(stack) - 1) * int(stride) + 1
+    return 2 * int(max_size) - 1 + (2 * int(streams) - 1) * d
 
 
 @dataclass
@@ -168,8 +172,11 @@ def not_shifted_message(row: int) -> str:
 
 
 def count_frames(data: TensorDictBase, pixels_key: str = "pixels", chunk: int = 512,
-                 streams: int = 1) -> int:
-    """Frames that storing ``data`` (in order, into an empty store) pushes into the ring."""
+                 streams: int = 1, stride: int = 1) -> int:
+    """Frames that storing ``data`` (in order, into an empty store) pushes into the ring
+    (``stride`` frames between the stacked frames)."""
+    if stride != 1:
+        return count_strided(data, pixels_key, streams, stride)
     if len(data) % streams:
         raise ValueError(f"{len(data)} rows are not whole steps of {streams} streams")
     ops, head = Pixels(numpy=True), 0

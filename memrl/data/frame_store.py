@@ -22,24 +22,33 @@ consecutive steps, step-major), and a write whose row count is not a multiple of
   ``CatFrames(padding="same")``, or any stack): its distinct consecutive frames are pushed
   (1 for a reset stack, at most 4), plus the new frame.
 
-Ring size bound (default ``2 max_size - 1 + (2 S - 1) stack``; ``2 max_size + stack - 1`` for
-one stream). Env data pushes at most 2 frames per row (1 for a continuation, 2 for an episode
+Strided stacks (``stride`` k > 1, ``env.frame_stride``): a stack is ``[f(t-3k), f(t-2k),
+f(t-k), f(t)]`` and consecutive stacks share no frame, so each stream keeps the refs of its last
+``D = (stack - 1) k + 1`` frames and both stacks of a transition are read from them
+(:mod:`memrl.data.stride_plan`; ``2 stack`` refs per transition). Pushes are as above: 1 per
+continuation (its new frame), 2 for an episode start (the reset frame, standing for every
+``f(s < 0)``, then the new frame), in row order. At k = 1, ``D = stack``.
+
+Ring size bound (default ``2 max_size - 1 + (2 S - 1) D``; ``2 max_size + D - 1`` for one
+stream). Env data pushes at most 2 frames per row (1 for a continuation, 2 for an episode
 start). Count rows in write order; take a live row ``x`` of stream ``s``.
 
-- Its oldest frame: if it starts an episode, its own first push. If it continues, it is the
-  new frame of row ``x - stack S`` at the earliest (rows ``x - (stack - 1) S, ..., x`` of the
-  same stream continue, reset frames are newer), and those ``stack`` rows push 1 frame each.
+- Its oldest frame: if its episode started within its stack's span, the reset frame, first
+  push of that start row, at or after row ``x - (D - 1) S``. Otherwise it is ``f(t - D + 1)``,
+  the new frame of row ``x - D S`` (that stream's step ``t - D``), and rows ``x - (D - 1) S,
+  ..., x`` of the same stream continue and push 1 frame each.
 - With a FIFO writer, ``x`` is live after a write while at most ``max_size - 1`` rows follow
   it. From that oldest frame (excluded) to the end of such a write there are at most
-  ``stack S + max_size - 1`` rows, pushing at most ``2 (stack S + max_size - 1) - stack``.
+  ``D S + max_size - 1`` rows, pushing at most ``2 (D S + max_size - 1) - D``.
 - A frame with counter ``c`` is intact while ``c >= head - ring_size``, hence
-  ``ring_size >= 2 max_size - 1 + (2 S - 1) stack`` (episode start: ``>= 2 max_size``).
+  ``ring_size >= 2 max_size - 1 + (2 S - 1) D`` (episode start: ``>= 2 max_size``).
 
-No fewer frames do: stream 0 continues for ``stack + 1`` steps while every other row of the
-data is a one-step episode (tested for 1, 3 and 16 streams). At 84x84 and ``max_size`` 100,000
-that is 200,003 frames = 1.41 GB for one stream and 200,123 for 16, against 5.6 GB for two
-full stacks per transition. A write that would overwrite a frame still referenced (data that
-pushes more, e.g. shuffled mid-episode stacks, or a smaller ring) raises
+No fewer frames do: stream 0 continues for ``D + 1`` steps while every other row of the data
+is a one-step episode (tested for 1, 3 and 16 streams at k = 1, 1 and 3 streams at k = 3).
+At 84x84 and ``max_size`` 100,000 that is
+200,003 frames = 1.41 GB for one stream and 200,123 for 16 (k = 3: 200,009 and 200,309),
+against 5.6 GB for two full stacks per transition. A write that would overwrite a frame still
+referenced (data that pushes more, e.g. shuffled mid-episode stacks, or a smaller ring) raises
 :class:`FrameRingOverflow` before anything is changed.
 
 Device. With ``device`` (any torch device) the ring and the per-transition tensors live there,
@@ -76,6 +85,7 @@ from memrl.data.frame_plan import (
     plan_write,
     ring_frames,
 )
+from memrl.data.stride_plan import not_strided_message, plan_strided
 
 __all__ = ["REFS_KEY", "FrameRingOverflow", "FrameStackStorage", "count_frames", "ring_frames"]
 
@@ -113,17 +123,23 @@ class FrameStackStorage(LazyTensorStorage):
         pixels_key: the stacked key (its ``("next", key)`` twin is stored with it).
         chunk: rows compared at once when a large batch is written (bounds temporaries).
         numpy: pixel work with numpy (default: on CPU); False runs the torch path on CPU too.
+        stride: frames between the stacked frames (``env.frame_stride`` k; stacks ``[f(t-3k),
+            f(t-2k), f(t-k), f(t)]``): k > 1 stores ``2 stack`` refs per transition
+            (:mod:`memrl.data.stride_plan`).
     """
 
     def __init__(self, max_size: int, *, frames: int | None = None, stack: int = 4,
                  streams: int = 1, device: torch.device | str = "cpu",
-                 pixels_key: str = "pixels", chunk: int = 512, numpy: bool | None = None) -> None:
+                 pixels_key: str = "pixels", chunk: int = 512, numpy: bool | None = None,
+                 stride: int = 1) -> None:
         super().__init__(max_size, device=device)
-        self.stack, self.streams = int(stack), int(streams)
+        self.stack, self.streams, self.stride = int(stack), int(streams), int(stride)
+        if self.stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
         if self.streams < 1 or self.max_size < self.streams:
             raise ValueError(f"streams must be in [1, max_size={max_size}], got {streams}")
         self.ring_size = (int(frames) if frames is not None
-                          else ring_frames(max_size, stack, self.streams))
+                          else ring_frames(max_size, stack, self.streams, self.stride))
         if self.ring_size < self.stack + 1:
             raise ValueError(f"a frame ring needs at least {self.stack + 1} frames")
         self.pixels_key = pixels_key
@@ -138,6 +154,7 @@ class FrameStackStorage(LazyTensorStorage):
         self._last: Any = None
         self._last_slots: Any = None
         self._live_lb: float = math.inf  # a lower bound of the refs of live transitions
+        self._hist: torch.Tensor | None = None  # stride > 1: [S, span] refs of recent frames
 
     # ------------------------------------------------------------------ write
     def set(self, cursor: Any, data: Any, *, set_cursor: bool = True) -> None:  # type: ignore[override]
@@ -167,6 +184,8 @@ class FrameStackStorage(LazyTensorStorage):
         if next_pixels.shape != pixels.shape:
             raise ValueError(f"pixels {tuple(pixels.shape)} and next pixels "
                              f"{tuple(next_pixels.shape)} differ in shape")
+        if self.stride > 1:
+            return self._compact_strided(data, slots)
         ops, n = self._ops, len(pixels)
         p, q = ops.arr(pixels.to(self._dev)), ops.arr(next_pixels.to(self._dev))
         last_stack = None
@@ -197,6 +216,31 @@ class FrameStackStorage(LazyTensorStorage):
         out.set(REFS_KEY, ops.tensor(plan.refs))
         return out
 
+    def _compact_strided(self, data: TensorDictBase, slots: torch.Tensor) -> TensorDictBase:
+        """:meth:`_compact` for strided stacks (:mod:`memrl.data.stride_plan`)."""
+        key, nkey = self.pixels_key, ("next", self.pixels_key)
+        p, q = data.get(key).to(self._dev), data.get(nkey).to(self._dev)
+        hist_frames = None
+        if self._hist is not None:
+            hist_frames = (self._ring[self._hist.clamp(min=0) % self.ring_size]
+                           if self._ring is not None else
+                           torch.zeros((*self._hist.shape, *p.shape[2:]), dtype=p.dtype,
+                                       device=self._dev))
+        plan = plan_strided(p, q, self._head, self.streams, self.stride, self._hist, hist_frames)
+        if plan.bad >= 0:
+            raise ValueError(not_strided_message(plan.bad, self.stride))
+        head = self._head + len(plan.pushed_refs)
+        self._check_live(int(plan.refs.min()), len(p), slots, head)
+        if self._ring is None:
+            self._set_ring(torch.empty((self.ring_size, *p.shape[-2:]), dtype=p.dtype,
+                                       device=self._dev).zero_())
+        assert self._ring is not None
+        self._ring.index_copy_(0, plan.pushed_refs.to(self._dev) % self.ring_size, plan.pushed)
+        self._head, self._hist = head, plan.hist
+        out = data.exclude(key, nkey).to(self._dev)
+        out.set(REFS_KEY, plan.refs)
+        return out
+
     def _set_ring(self, ring: torch.Tensor | None) -> None:
         self._ring = ring
         self._ring_a = None if ring is None else self._ops.arr(ring)
@@ -216,7 +260,7 @@ class FrameStackStorage(LazyTensorStorage):
             exact = (int(torch.where(keep.to(old.device), old, old.new_tensor(2**62)).min())
                      if keep.any() else math.inf)
             if exact < floor:
-                need = ring_frames(self.max_size, self.stack, self.streams)
+                need = ring_frames(self.max_size, self.stack, self.streams, self.stride)
                 raise FrameRingOverflow(
                     f"the frame ring ({self.ring_size} frames) is too small: this write would "
                     f"overwrite frames of live transitions (needs >= {need} for env data of "
@@ -235,12 +279,14 @@ class FrameStackStorage(LazyTensorStorage):
         ops, slots = self._ops, self._ops.arr(refs % self.ring_size)
         out = td.exclude(REFS_KEY)
         out.set(self.pixels_key, ops.tensor(self._ring_a[slots[..., : self.stack]]))
-        out.set(("next", self.pixels_key), ops.tensor(self._ring_a[slots[..., 1:]]))
+        nxt = slots[..., self.stack:] if self.stride > 1 else slots[..., 1:]
+        out.set(("next", self.pixels_key), ops.tensor(self._ring_a[nxt]))
         return out
 
     def _empty(self) -> None:
         super()._empty()
         self._head, self._live_lb, self._last, self._last_slots = 0, math.inf, None, None
+        self._hist = None
 
     @property
     def frames_used(self) -> int:
@@ -258,16 +304,24 @@ class FrameStackStorage(LazyTensorStorage):
         rows = None if self._last is None else self._ops.tensor(self._last).tolist()
         # one stream keeps the original layout (a list or None), so old checkpoints still load
         last = rows[0] if rows is not None and self.streams == 1 else rows
-        return {"head": self._head, "last": last, "live_lb": self._live_lb,
+        meta = {"head": self._head, "last": last, "live_lb": self._live_lb,
                 "ring_size": self.ring_size, "stack": self.stack, "streams": self.streams}
+        if self.stride > 1:  # k = 1 keeps the original layout
+            meta.update(stride=self.stride,
+                        hist=None if self._hist is None else self._hist.cpu().tolist())
+        return meta
 
     def _set_frame_meta(self, meta: dict[str, Any], ring: Any) -> None:
-        streams = int(meta.get("streams", 1))
+        streams, stride = int(meta.get("streams", 1)), int(meta.get("stride", 1))
         if (int(meta["ring_size"]) != self.ring_size or int(meta["stack"]) != self.stack
-                or streams != self.streams):
+                or streams != self.streams or stride != self.stride):
             raise ValueError(f"frame ring of {meta['ring_size']} frames x stack {meta['stack']} "
-                             f"x {streams} stream(s) cannot load into {self.ring_size} x "
-                             f"{self.stack} x {self.streams}")
+                             f"x {streams} stream(s) x stride {stride} cannot load into "
+                             f"{self.ring_size} x {self.stack} x {self.streams} x stride "
+                             f"{self.stride}")
+        hist = meta.get("hist")
+        self._hist = None if hist is None else torch.tensor(hist, dtype=torch.long,
+                                                            device=self._dev)
         self._head = int(meta["head"])
         self._live_lb = float(meta["live_lb"])
         last = meta["last"]

@@ -64,22 +64,26 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
     capacity, batch = int(cfg.buffer.capacity), int(a.batch_size)
     compact = bool(cfg.buffer.compact)  # each frame stored once
     store: dict[str, Any] = {"compact": compact, "streams": num_envs, "device": device}
+    nstep = {"n_step": int(a.n_step), "gamma": float(a.gamma)}  # memrl.data.nstep
+    if int(cfg.env.get("frame_stride", 1)) != 1:  # frames between stacked frames
+        nstep["stride"] = int(cfg.env.frame_stride)
     terms = (TDTerm(), *spec.terms(cfg))
     lr = spec.lr(cfg)
     lr = None if lr is None else float(lr)
     share = float(spec.demo_share(cfg))
     if spec.offline(cfg):
         assert demos is not None
-        train, held_out = split_demos(demos, float(cfg.mode[spec.settings].holdout_fraction), int(cfg.seed))
-        return Stage(spec, demo_buffer(train, batch, compact=compact, device=device), None, terms, lr,
-                     held_out.to(device))
+        train, held_out = split_demos(demos, float(cfg.mode[spec.settings].holdout_fraction), int(cfg.seed),
+                                      keep_order=nstep["n_step"] > 1)
+        return Stage(spec, demo_buffer(train, batch, compact=compact, device=device, **nstep), None, terms,
+                     lr, held_out.to(device))
     explore = make_exploration(*spec.exploration(cfg), kind=str(a.exploration), num_envs=num_envs,
                                **{k: a[k] for k in EXPLORATION_OPTIONS})
     explore.to(device)
     if share > 0:
         assert demos is not None
         buffer: Any = PriorKnowledgeBuffer(demos, capacity, share, batch, sampling=str(cfg.mode.sampling),
-                                           **store)
+                                           **store, **nstep)
     else:
-        buffer = agent_buffer(capacity, batch, **store)
+        buffer = agent_buffer(capacity, batch, **store, **nstep)
     return Stage(spec, buffer, explore, terms, lr)

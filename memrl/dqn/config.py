@@ -25,6 +25,11 @@ class AgentConfig:
 
     gamma: float = 0.95
     """Discount factor (Table II)."""
+    n_step: int = 1
+    """Steps of reward summed per sampled transition (n-step returns, :mod:`memrl.data.nstep`):
+    its reward is ``sum_{i<m} gamma^i r_{t+i}`` over up to ``n_step`` steps of its episode, the
+    bootstrap ``gamma^m max Q(s_{t+m})``; a crash within the window ends the sum without a
+    bootstrap. 1: the 1-step target of the paper. Applies to agent data and demos alike."""
     lr: float = 2.5e-4
     """Adam learning rate."""
     batch_size: int = 32
@@ -219,6 +224,7 @@ def check_train_config(cfg: DictConfig) -> None:
     a = cfg.agent
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
     _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
+    _need(a.n_step >= 1, "agent.n_step", f"must be >= 1, got {a.n_step}")
     _need(str(a.precision) in PRECISIONS, "agent.precision",
           f"must be one of {sorted(PRECISIONS)}")
     _need(a.threads >= 0, "agent.threads", f"must be >= 0, got {a.threads}")

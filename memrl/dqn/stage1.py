@@ -41,12 +41,14 @@ class Stage1Progress:
 
 
 def split_demos(demos: TensorDictBase, holdout_fraction: float,
-                seed: int) -> tuple[TensorDictBase, TensorDictBase]:
-    """(train, held-out) parts of the demos, by a seeded permutation."""
+                seed: int, keep_order: bool = False) -> tuple[TensorDictBase, TensorDictBase]:
+    """(train, held-out) parts of the demos, by a seeded permutation; ``keep_order``: the train
+    part in dataset order (n-step windows chain consecutive demos; held-out ones are gaps)."""
     gen = torch.Generator().manual_seed(seed)
     perm = torch.randperm(len(demos), generator=gen)
     n_hold = max(1, int(round(holdout_fraction * len(demos))))
-    return demos[perm[n_hold:]], demos[perm[:n_hold]]
+    train = perm[n_hold:].sort().values if keep_order else perm[n_hold:]
+    return demos[train], demos[perm[:n_hold]]
 
 
 @torch.no_grad()

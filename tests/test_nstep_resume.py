@@ -1,0 +1,53 @@
+"""Kill-and-resume with n-step windows (and strided stacks) stays exact on 4 envs."""
+
+from __future__ import annotations
+
+import pytest
+
+from memrl.dqn import checkpoint as ckpt
+from memrl.dqn.loop import Trainer
+from memrl.train import train
+from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
+
+
+class Killed(RuntimeError):
+    pass
+
+
+def _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch, extra):
+    cfg = compose_cfg("train", TINY + extra)
+    full = train(cfg, tmp_path / "full", demos=demos)
+    original = Trainer._episodes_done
+
+    def dying(self, ends):
+        original(self, ends)
+        if self.counters.episodes >= 8:  # checkpoints fall mid-episode of the other envs
+            raise Killed("simulated kill")
+
+    monkeypatch.setattr(Trainer, "_episodes_done", dying)
+    with pytest.raises(Killed):
+        train(cfg, tmp_path / "cut", demos=demos)
+    monkeypatch.setattr(Trainer, "_episodes_done", original)
+    state = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")
+    assert 3 <= state["counters"]["episodes"] < 8 and bool(state["collector"]["engine"]["steps"].any())
+    resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
+    for key in ("frames", "episodes", "updates", "stage"):
+        assert getattr(resumed, key) == getattr(full, key), key
+    assert csv_rows(tmp_path / "cut" / "episodes.csv") == csv_rows(tmp_path / "full" / "episodes.csv")
+    assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
+
+
+BASE = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3", "agent.n_step=3"]
+
+
+@pytest.mark.parametrize("mode", [None, "A", "B"])
+def test_n_step_run_killed_and_resumed_equals_an_uninterrupted_one(
+        compose_cfg, tmp_path, demos, monkeypatch, mode):
+    _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch,
+                     BASE + ([f"+mode={mode}"] if mode else []))
+
+
+@pytest.mark.xfail(reason="needs env.frame_stride", strict=False)
+def test_strided_n_step_run_killed_and_resumed_equals_an_uninterrupted_one(
+        compose_cfg, tmp_path, demos, monkeypatch):
+    _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch, BASE + ["env.frame_stride=3"])
