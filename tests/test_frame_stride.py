@@ -253,7 +253,9 @@ def test_learned_cars_see_the_env_stride_in_both_engines(pool):
 
 
 def test_learned_cars_act_alike_in_both_engines_at_stride_3(pool):
+    """Learned and constant cars among crashes and auto-resets (short: a forward pass per env
+    and step on the reference side)."""
     config = {"opponent": {"type": "mixed", "pool": pool, "epsilon": 0.1}, "vehicles_count": 4,
               "frame_stride": 3, "frame_stack": S}
-    compare(config, list(range(4)), 80, random_actions(0.3))
-    compare(config, list(range(4, 8)), 60, random_actions(1.0), auto_reset=True)
+    tally = compare(config, list(range(4, 7)), 40, random_actions(1.0), auto_reset=True)
+    assert tally.resets > 0
