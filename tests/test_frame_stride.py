@@ -259,3 +259,24 @@ def test_learned_cars_act_alike_in_both_engines_at_stride_3(pool):
               "frame_stride": 3, "frame_stack": S}
     tally = compare(config, list(range(4, 7)), 40, random_actions(1.0), auto_reset=True)
     assert tally.resets > 0
+
+
+def test_evaluation_runners_and_deploy_baseline_agree_at_stride_3():
+    """The gym-env runner (FrameStack at the env's stride), the engine runner and the deploy
+    baseline's simulator episodes give the same episodes of a greedy Q-network at k = 3."""
+    from memrl.control.baseline import simulator_episode
+    from memrl.evaluation.policies import GreedyActor
+    from memrl.evaluation.runner import Job, run_jobs
+    from memrl.modules.policy import GreedyPolicy
+    from tests.test_engine_runner import qnet
+
+    net = qnet(2, 40.0)
+    env_cfg = {"duration": 40, "vehicles_count": [0, 4], "initial_lane": "non_goal", "frame_stride": 3}
+    seeds = [11, 12, 13, 14]
+    jobs = [Job(env_cfg, "non_goal", list(enumerate(seeds)))]
+    gym_records = run_jobs(GreedyActor(net), jobs, engine=False).records
+    assert run_jobs(GreedyActor(net), jobs, engine=True).records == gym_records
+    env = LaneChangeEnv(config=env_cfg)
+    runs = [simulator_episode(env, GreedyPolicy(net), s) for s in seeds]
+    assert [(r["collided"], r["reached_target"]) for r in runs] == \
+        [(r.collided, r.reached_target) for r in gym_records]
