@@ -270,12 +270,14 @@ def test_evaluation_runners_and_deploy_baseline_agree_at_stride_3():
     from memrl.modules.policy import GreedyPolicy
     from tests.test_engine_runner import qnet
 
-    net = qnet(2, 40.0)
+    net = qnet(0)  # acts on what it sees: these episodes end otherwise at stride 1
     env_cfg = {"duration": 40, "vehicles_count": [0, 4], "initial_lane": "non_goal", "frame_stride": 3}
     seeds = [11, 12, 13, 14]
     jobs = [Job(env_cfg, "non_goal", list(enumerate(seeds)))]
     gym_records = run_jobs(GreedyActor(net), jobs, engine=False).records
     assert run_jobs(GreedyActor(net), jobs, engine=True).records == gym_records
+    consecutive = [Job({**env_cfg, "frame_stride": 1}, "non_goal", list(enumerate(seeds)))]
+    assert run_jobs(GreedyActor(net), consecutive, engine=True).records != gym_records
     env = LaneChangeEnv(config=env_cfg)
     runs = [simulator_episode(env, GreedyPolicy(net), s) for s in seeds]
     assert [(r["collided"], r["reached_target"]) for r in runs] == \
