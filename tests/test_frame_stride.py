@@ -143,7 +143,7 @@ def test_gym_stack_and_batched_engine_agree_at_stride_3_16_seeds_300_steps():
 def test_torchrl_pipeline_and_batched_engine_agree_with_resets(k, auto_reset):
     """The TorchRL pipeline (CatFrames + EveryKthFrame) against the engine; its per-step cost
     keeps this short in the default suite (the 16 x 300 version is marked slow)."""
-    seen = _pipeline_vs_engine({**NON_GOAL, "frame_stride": k}, list(range(100, 104)), 80, auto_reset,
+    seen = _pipeline_vs_engine({**NON_GOAL, "frame_stride": k}, list(range(100, 103)), 60, auto_reset,
                                p_random=1.0)
     assert seen["resets"] > 0
 
@@ -257,7 +257,7 @@ def test_learned_cars_act_alike_in_both_engines_at_stride_3(pool):
     and step on the reference side)."""
     config = {"opponent": {"type": "mixed", "pool": pool, "epsilon": 0.1}, "vehicles_count": 4,
               "frame_stride": 3, "frame_stack": S}
-    tally = compare(config, list(range(4, 7)), 40, random_actions(1.0), auto_reset=True)
+    tally = compare(config, list(range(4, 7)), 30, random_actions(1.0), auto_reset=True)
     assert tally.resets > 0
 
 
