@@ -41,11 +41,14 @@ def compare(config: dict, seeds: list[int], steps: int,
     """Run ``len(seeds)`` reference envs and one batched engine with the same seeds and
     actions for ``steps`` steps (finished episodes reset in both), asserting identical
     frames, rewards, components, flags and states within ``state_atol``. ``auto_reset``: the
-    engine resets finished envs inside its step (``step(auto_reset=True)``)."""
+    engine resets finished envs inside its step (``step(auto_reset=True)``). A config with
+    ``frame_stack`` S > 1 compares the reference's gym stacks with the engine's S-frame stacks
+    (at the config's ``frame_stride``) too."""
+    stacked = int(config.get("frame_stack", 1)) > 1
     refs = [LaneChangeEnv(config=config) for _ in seeds]
     for env, seed in zip(refs, seeds, strict=True):
         env.reset(seed=seed)
-    engine = BatchedLaneChange(config, len(seeds), device,
+    engine = BatchedLaneChange(config, len(seeds), device, int(config.get("frame_stack", 4)),
                                opponents=refs[0]._opponents if len(refs) == 1 else None)
     engine.reset(seeds=seeds)
     rng = np.random.default_rng(seeds[0])
@@ -53,6 +56,7 @@ def compare(config: dict, seeds: list[int], steps: int,
     for env_i, env in enumerate(refs):
         first = env.observe_from(env.vehicle, env.target_lane)[0]
         assert np.array_equal(engine.newest_frame()[env_i].cpu().numpy(), first)
+        assert (engine.observation()[env_i].cpu().numpy() == first).all()  # padded with the first
     for _ in range(steps):
         actions = act(refs, rng)
         tally.actions.append(actions)
@@ -60,12 +64,17 @@ def compare(config: dict, seeds: list[int], steps: int,
         frames = engine.newest_frame().cpu().numpy()
         state = engine.state.cpu().numpy()
         present = engine.present.cpu().numpy()
-        final = _final_frames(out)
+        final = _final_stacks(out)
+        stacks = engine.observation().cpu().numpy() if stacked else None
         assert auto_reset or not final
         done = []
         for i, env in enumerate(refs):
             obs, reward, terminated, truncated, info = env.step(int(actions[i]))
-            assert np.array_equal(final.get(i, frames[i]), obs[0]), f"env {i} step {env.steps}: frames differ"
+            newest = final[i][-1] if i in final else frames[i]
+            assert np.array_equal(newest, obs[-1]), f"env {i} step {env.steps}: frames differ"
+            if stacks is not None:
+                stack = final.get(i, stacks[i])
+                assert np.array_equal(stack, obs), f"env {i} step {env.steps}: stacks differ"
             _assert_outcome(out, i, reward, terminated, truncated, info)
             if i not in final:  # (a reset env's state is checked against the new scene below)
                 expected = car_states(env)
@@ -93,12 +102,12 @@ def compare(config: dict, seeds: list[int], steps: int,
     return tally
 
 
-def _final_frames(out: StepOut) -> dict[int, np.ndarray]:
-    """The last frames of the episodes that ``step(auto_reset=True)`` finished, by env."""
+def _final_stacks(out: StepOut) -> dict[int, np.ndarray]:
+    """The last stacks of the episodes that ``step(auto_reset=True)`` finished, by env."""
     if out.reset_ids is None:
         return {}
     assert out.final_observation is not None
-    return {i: out.final_observation[row, -1].cpu().numpy() for row, i in enumerate(out.reset_ids.tolist())}
+    return {i: out.final_observation[row].cpu().numpy() for row, i in enumerate(out.reset_ids.tolist())}
 
 
 def _assert_new_episodes(engine: BatchedLaneChange, refs: list[LaneChangeEnv], done: list[int]) -> None:

@@ -40,9 +40,9 @@ def _run(engine: BatchedLaneChange, rng: np.random.Generator, steps: int) -> lis
     return seen
 
 
-@pytest.mark.parametrize("kind", ["constant", "learned", "mixed"])
-def test_a_saved_and_reloaded_engine_continues_exactly_as_the_original(tmp_path, pool, kind):
-    config = dict(NON_GOAL)
+@pytest.mark.parametrize(("kind", "stride"), [("constant", 1), ("learned", 1), ("mixed", 1), ("constant", 3)])
+def test_a_saved_and_reloaded_engine_continues_exactly_as_the_original(tmp_path, pool, kind, stride):
+    config = {**NON_GOAL, "frame_stride": stride}  # stride 3: a ring of 10 frames, cars' too
     if kind != "constant":  # exploration draws from each env's generator: it must be restored too
         config = {**config, "vehicles_count": 4, "opponent": {"type": kind, "pool": pool, "epsilon": 0.2}}
     engine = BatchedLaneChange(config, N)
@@ -64,6 +64,23 @@ def test_a_saved_and_reloaded_engine_continues_exactly_as_the_original(tmp_path,
         for key in a:
             assert np.array_equal(a[key], b[key]), key
     assert sum(int(r["terminated"].sum()) for r in continued) > 0  # crashes and resets after the load
+
+
+def test_learned_cars_frame_histories_resume_exactly_at_stride_3(tmp_path, pool):
+    """Mid-episode at k = 3: the ring and each learned car's 10 frames come back bit-exact."""
+    config = {"vehicles_count": 2, "frame_stride": 3, "opponent": {"type": "learned", "pool": pool}}
+    engine = BatchedLaneChange(config, 3)
+    engine.reset(seeds=[0, 1, 2])
+    _run(engine, np.random.default_rng(0), 8)
+    assert engine._car_frames is not None and engine._car_frames.shape[2] == 10
+    torch.save(engine.state_dict(), tmp_path / "engine.pt")
+    resumed = BatchedLaneChange(config, 3)
+    resumed.load_state_dict(torch.load(tmp_path / "engine.pt"))
+    continued = _run(engine, np.random.default_rng(1), 15)
+    replayed = _run(resumed, np.random.default_rng(1), 15)
+    for a, b in zip(continued, replayed, strict=True):
+        for key in a:
+            assert np.array_equal(a[key], b[key]), key
 
 
 def test_state_dict_is_a_copy_not_a_view_of_the_running_engine():
@@ -92,6 +109,7 @@ def test_envs_never_reset_keep_no_generator():
     ({"frame_stack": 2}, "frame_stack: saved 4, this engine 2"),
     ({"config": {"duration": 100}}, "config duration: saved 300, this engine 100"),
     ({"config": {"vehicles_count": 3}}, "car_slots: saved 6, this engine 4"),
+    ({"config": {"frame_stride": 3}}, "frame_stride: saved 1, this engine 3"),
 ])
 def test_loading_into_a_different_engine_names_what_differs(kwargs, match):
     engine = BatchedLaneChange({}, 2)
@@ -99,6 +117,19 @@ def test_loading_into_a_different_engine_names_what_differs(kwargs, match):
     other = BatchedLaneChange(**{"config": {}, "num_envs": 2, **kwargs})
     with pytest.raises(BatchedEnvError, match=match):
         other.load_state_dict(engine.state_dict())
+
+
+def test_a_state_saved_before_frame_stride_existed_loads_at_stride_1():
+    engine = BatchedLaneChange({}, 2)
+    engine.reset(seeds=[0, 1])
+    engine.step(torch.full((2,), 3))
+    state = engine.state_dict()
+    del state["frame_stride"], state["config"]["frame_stride"]  # as saved by the older version
+    other = BatchedLaneChange({}, 2)
+    other.load_state_dict(state)
+    assert torch.equal(other.observation(), engine.observation())
+    with pytest.raises(BatchedEnvError, match="frame_stride: saved 1, this engine 2"):
+        BatchedLaneChange({"frame_stride": 2}, 2).load_state_dict(state)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -428,6 +428,7 @@ def test_dataset_recorded_before_a_later_key_still_loads(copy):
     meta = json.loads(meta_file.read_text())
     assert meta["env_config"]["bev"].pop("path_length") == 0.0
     assert meta["env_config"].pop("frame_stack") == 1  # a later key too
+    assert meta["env_config"].pop("frame_stride") == 1  # and another
     # The hash as the version without the key computed it: over every stored key.
     old = demos_mod._canonical({k: v for k, v in meta["env_config"].items()
                                 if k not in demos_mod.EPISODE_KEYS})

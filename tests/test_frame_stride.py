@@ -1,159 +1,284 @@
-"""Strided stacks (env.frame_stride k = 3) in the frame ring: each frame once, stacks rebuilt
-from per-stream histories of refs, the ring bound (tight), checkpoints, n-step on top."""
+"""``env.frame_stride`` k: the stack at step t is the frames of steps t-3k, t-2k, t-k, t (oldest
+first; the reset frame for steps before 0) in every engine, and the engines agree exactly."""
 
 from __future__ import annotations
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs.utils import check_env_specs, step_mdp
 
-from memrl.data.buffers import agent_buffer, demo_buffer
-from memrl.data.frame_store import FrameRingOverflow, FrameStackStorage, ring_frames
-from memrl.data.nstep import STEPS_KEY
-from tests.nstep_ref import reference
-from tests.stream_data import STACK, stream_steps
+from memrl.envs import ENV_ID
+from memrl.envs.batched import BatchedLaneChange
+from memrl.envs.config import EnvConfigError, validate_env_config
+from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.stride import history_length, stack_positions
+from memrl.envs.torchrl_env import make_env, unwrap
+from memrl.modules.policy import FrameStack
+from tests.batched_helpers import STATE_ATOL, car_states, compare, random_actions
 
-K = 3
-SPAN = (STACK - 1) * K + 1  # frames a strided stack spans: t-9 .. t
-
-
-def same(a, b) -> bool:
-    a, b = a.exclude("index"), b.exclude("index")  # TensorDictReplayBuffer stores its own
-    return set(a.keys(True, True)) == set(b.keys(True, True)) and bool((a == b).all())
+NON_GOAL = {"initial_lane": "non_goal", "vehicles_count": [0, 5]}
+S = 4
 
 
-def test_synthetic_strided_stacks_are_what_the_env_emits():
-    steps = stream_steps(1, 12, lengths=[[12]], stride=K)
-    # frame id k is pixel (0, 0); time s has id s + 1 (the reset frame, id 1, at s <= 0).
-    # Step t's next stack: times t+1-9, t+1-6, t+1-3, t+1
-    nxt = [steps[t]["next", "pixels"][0, :, 0, 0].tolist() for t in (0, 3, 11)]
-    assert nxt == [[1, 1, 1, 2], [1, 1, 2, 5], [4, 7, 10, 13]]
+def test_history_spans_the_stack():
+    assert history_length(4, 1) == 4 and history_length(4, 3) == 10
+    assert stack_positions(4, 3) == [0, 3, 6, 9]
 
 
-@pytest.mark.parametrize("streams", [1, 3])
-@pytest.mark.parametrize("numpy", [True, False])
-def test_rows_read_back_equal_the_written_strided_data(streams, numpy):
-    data = stream_steps(streams, 40, seed=streams, max_len=14, stride=K)
-    store = FrameStackStorage(400, streams=streams, stride=K, numpy=numpy)
-    rb = TensorDictReplayBuffer(storage=store, batch_size=4)
-    for step in data:
-        rb.extend(step)
-    rows = torch.cat(data)
-    assert same(store.get(torch.arange(len(rows))), rows)
-    # each frame pushed once: one per row, one more per episode start (reset stack)
-    starts = int((rows["pixels"] == rows["pixels"][:, :1]).flatten(1).all(1).sum())
-    assert store._head == len(rows) + starts
-    assert store.ring_size == ring_frames(400, STACK, streams, K) == 2 * 400 - 1 + (2 * streams - 1) * SPAN
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_bad_frame_stride_names_the_key(bad):
+    with pytest.raises(EnvConfigError, match="'frame_stride': need an int >= 1"):
+        validate_env_config({"frame_stride": bad})
 
 
-def test_a_write_of_many_steps_plans_like_one_step_writes():
-    data = stream_steps(2, 30, seed=3, max_len=12, stride=K)
-    one, many = FrameStackStorage(60, streams=2, stride=K), FrameStackStorage(60, streams=2, stride=K)
-    a, b = (TensorDictReplayBuffer(storage=s, batch_size=4) for s in (one, many))
-    for step in data:
-        a.extend(step)
-    b.extend(torch.cat(data))
-    idx = torch.arange(60)
-    assert same(one.get(idx), many.get(idx)) and one._head == many._head
+# ------------------------------------------------------------------------- hand check
+def _expected(newest: list[np.ndarray], t: int, k: int) -> np.ndarray:
+    """The contract: frames t-3k, t-2k, t-k, t, each clamped to the reset frame (step 0)."""
+    return np.stack([newest[max(t - (S - 1 - j) * k, 0)] for j in range(S)])
 
 
-def worst_case(streams: int, capacity: int):
-    """Env 0 continues for ``SPAN + 1`` steps, every other row is a one-step episode."""
-    lengths = [[SPAN + 1]] + [[] for _ in range(streams - 1)]
-    return stream_steps(streams, SPAN + capacity // streams + 3, max_len=1, lengths=lengths,
-                        stride=K)
+@pytest.mark.parametrize("k", [2, 3])
+def test_every_engine_stacks_frames_t_minus_jk_padded_with_the_reset_frame(k):
+    """20 steps of 3 envs: at each step every engine's stack is, by hand, its own newest frames
+    of steps t-3k, t-2k, t-k, t (the reset frame for negative times)."""
+    config = {"frame_stride": k, "vehicles_count": 3, "bev": {"path_length": 20.0}}
+    seeds, steps = [0, 1, 2], 20
+    rng = np.random.default_rng(2)  # actions under which no car crashes in these 20 steps
+    actions = np.where(rng.random((steps, len(seeds))) < 0.3, rng.integers(9, size=(steps, len(seeds))), 4)
+    engine = BatchedLaneChange(config, len(seeds))
+    engine.reset(seeds=seeds)
+    gym_envs = [LaneChangeEnv(config={**config, "frame_stack": S}) for _ in seeds]
+    gym_obs = [env.reset(seed=s)[0] for env, s in zip(gym_envs, seeds, strict=True)]
+    pipes = [make_env(config) for _ in seeds]
+    tds = [p.reset(seed=s) for p, s in zip(pipes, seeds, strict=True)]
+    singles = [LaneChangeEnv(config=config) for _ in seeds]  # frame_stack 1, stacked by FrameStack
+    stacks = [FrameStack(S, k) for _ in seeds]
+    hand = [st.reset(env.reset(seed=s)[0]) for st, env, s in zip(stacks, singles, seeds, strict=True)]
+    newest: list[list[np.ndarray]] = [[] for _ in seeds]  # per env, its frame of each step
+    for t in range(steps + 1):
+        if t > 0:
+            engine.step(torch.as_tensor(actions[t - 1]))
+            for i in range(len(seeds)):
+                a = int(actions[t - 1, i])
+                gym_obs[i] = gym_envs[i].step(a)[0]
+                tds[i]["action"] = torch.tensor(a)
+                tds[i] = step_mdp(pipes[i].step(tds[i]))
+                hand[i] = stacks[i].push(singles[i].step(a)[0])
+        obs = engine.observation().numpy()
+        for i in range(len(seeds)):
+            newest[i].append(engine.newest_frame()[i].numpy().copy())
+            want = _expected(newest[i], t, k)
+            assert np.array_equal(obs[i], want), (i, t)
+            for name, got in (("gym", gym_obs[i]), ("torchrl", tds[i]["pixels"].numpy()), ("hand", hand[i])):
+                assert np.array_equal(got, want), (name, i, t)
+            assert not unwrap(pipes[i]).vehicle.crashed  # no episode ended: one stack throughout
+    for frames in newest:  # the check has teeth: every step's frame differs from every other
+        assert len({f.tobytes() for f in frames}) == steps + 1
 
 
-@pytest.mark.parametrize("streams", [1, 3])
-def test_the_strided_ring_bound_holds_at_its_worst_case_and_is_tight(streams):
-    capacity = 4 * streams
-    data = worst_case(streams, capacity)
-    bound = ring_frames(capacity, STACK, streams, K)
-    plain = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity), batch_size=2)
-    ring = TensorDictReplayBuffer(storage=FrameStackStorage(capacity, streams=streams, stride=K),
-                                  batch_size=2)
-    for step in data:
-        plain.extend(step)
-        ring.extend(step)
-        n = len(plain)
-        assert same(ring.storage.get(torch.arange(n)), plain.storage.get(torch.arange(n)))
-    small = TensorDictReplayBuffer(
-        storage=FrameStackStorage(capacity, streams=streams, stride=K, frames=bound - 1),
-        batch_size=2)
-    with pytest.raises(FrameRingOverflow):
-        for step in data:
-            small.extend(step)
+# ----------------------------------------------------------- engines equal, with resets
+def _pipeline_vs_engine(config: dict, seeds: list[int], steps: int, auto_reset: bool,
+                        p_random: float = 0.5) -> dict[str, int]:
+    """Reference envs through the TorchRL pipeline (``make_env``: CatFrames + EveryKthFrame) and
+    one batched engine, same seeds and actions: identical stacks, rewards, flags; states within
+    ``STATE_ATOL``; finished episodes reset in both (seedless: each env's generator goes on)."""
+    n = len(seeds)
+    pipes = [make_env(config) for _ in seeds]
+    tds = [p.reset(seed=s) for p, s in zip(pipes, seeds, strict=True)]
+    engine = BatchedLaneChange(config, n, "cpu", S)
+    engine.reset(seeds=seeds)
+    obs = engine.observation().numpy()
+    for i in range(n):
+        assert np.array_equal(tds[i]["pixels"].numpy(), obs[i])
+    rng = np.random.default_rng(seeds[0])
+    seen = {"steps": 0, "resets": 0, "crashes": 0}
+    for _ in range(steps):
+        actions = np.where(rng.random(n) < p_random, rng.integers(9, size=n), 4)
+        out = engine.step(torch.as_tensor(actions), auto_reset=auto_reset)
+        obs, state, present = engine.observation().numpy(), engine.state.numpy(), engine.present.numpy()
+        final = {} if out.reset_ids is None else {
+            i: out.final_observation[row].numpy() for row, i in enumerate(out.reset_ids.tolist())}
+        done = []
+        for i, pipe in enumerate(pipes):
+            tds[i]["action"] = torch.tensor(int(actions[i]))
+            td = pipe.step(tds[i])
+            nxt = td["next"]
+            assert np.array_equal(nxt["pixels"].numpy(), final.get(i, obs[i])), (i, seen["steps"])
+            assert nxt["reward"].item() == np.float32(out.reward[i].item())
+            for key in ("terminated", "truncated", "collided", "on_target_lane", "reached_target"):
+                assert bool(nxt[key]) == bool(getattr(out, key)[i]), key
+            if i not in final:
+                got, want = state[i][present[i]], car_states(unwrap(pipe))
+                assert got.shape == want.shape and float(np.abs(got - want).max()) <= STATE_ATOL
+            seen["steps"] += 1
+            if bool(nxt["done"]):
+                seen["crashes"] += int(nxt["terminated"])
+                done.append(i)
+                tds[i] = pipe.reset()
+            else:
+                tds[i] = step_mdp(td)
+        assert sorted(final) == (done if auto_reset else [])
+        if done and not auto_reset:
+            engine.reset(done)
+        if done:
+            obs = engine.observation().numpy()
+            for i in done:
+                assert np.array_equal(tds[i]["pixels"].numpy(), obs[i])
+                assert (obs[i] == obs[i, -1]).all()  # a new episode: the first frame throughout
+            seen["resets"] += len(done)
+    return seen
 
 
-def test_stacks_that_are_not_strided_are_refused():
-    data = torch.cat(stream_steps(1, 6, lengths=[[6]]))  # stride 1 data
-    rb = TensorDictReplayBuffer(storage=FrameStackStorage(10, stride=K), batch_size=2)
-    with pytest.raises(ValueError, match="not the next stack of stride 3"):
-        rb.extend(data)
+def test_gym_stack_and_batched_engine_agree_at_stride_3_16_seeds_300_steps():
+    """The reference env's own stack (``frame_stack: 4``) against the engine's: 16 seeds x 300
+    steps at k = 3 among 0-5 cars, crashes into cars and walls, auto-resets inside the step."""
+    tally = compare({**NON_GOAL, "frame_stack": S, "frame_stride": 3}, list(range(16)), 300,
+                    random_actions(1.0), auto_reset=True)
+    assert tally.steps == 16 * 300 and tally.resets > 16 and tally.wall_hits > 0
 
 
-@pytest.mark.parametrize("n", [1, 3])
-def test_checkpoint_mid_episode_resumes_exactly(tmp_path, n):
-    data = stream_steps(2, 50, seed=9, max_len=15, stride=K)
-    a = agent_buffer(30, 4, streams=2, n_step=n, gamma=0.9, stride=K)
-    for step in data[:23]:
-        a.extend(step)
-    a.dumps(tmp_path / "rb")
-    b = agent_buffer(30, 4, streams=2, n_step=n, gamma=0.9, stride=K)
-    b.loads(tmp_path / "rb")
-    for step in data[23:]:
-        a.extend(step)
-        b.extend(step)
-    idx = torch.arange(30)
-    assert same(a.storage.get(idx), b.storage.get(idx))
-    assert a.storage._head == b.storage._head
+@pytest.mark.parametrize(("k", "auto_reset"), [(3, True), (2, False)])
+def test_torchrl_pipeline_and_batched_engine_agree_with_resets(k, auto_reset):
+    """The TorchRL pipeline (CatFrames + EveryKthFrame) against the engine; its per-step cost
+    keeps this short in the default suite (the 16 x 300 version is marked slow)."""
+    seen = _pipeline_vs_engine({**NON_GOAL, "frame_stride": k}, list(range(100, 103)), 60, auto_reset,
+                               p_random=1.0)
+    assert seen["resets"] > 0
 
 
-@pytest.mark.parametrize("n", [3, 10])
-def test_n_step_windows_over_strided_stacks_match_the_reference(n):
-    steps = stream_steps(3, 30, seed=n, max_len=12, stride=K)
-    rb = agent_buffer(300, 8, streams=3, n_step=n, gamma=0.9, stride=K)
-    for td in steps:
-        rb.extend(td)
-    got, want = rb.storage.get(torch.arange(len(rb))), reference(steps, n, 0.9)
-    for i, w in enumerate(want):
-        assert torch.equal(got["next", "reward"][i], w["reward"]), i
-        assert int(got[STEPS_KEY][i]) == w["m"]
-        assert torch.equal(got["next", "pixels"][i], w["next_pixels"]), i
+def test_gym_stack_and_batched_engine_agree_at_stride_2():
+    tally = compare({**NON_GOAL, "frame_stack": S, "frame_stride": 2}, list(range(16, 24)), 120,
+                    random_actions(0.5))
+    assert tally.resets > 0
 
 
-def test_strided_demos_fill_a_ring_of_exactly_their_frames():
-    rows = torch.cat(stream_steps(1, 40, seed=2, max_len=15, stride=K))
-    keep = torch.ones(len(rows), dtype=torch.bool)
-    keep[[5, 17]] = False  # unstored steps: the next row starts a fresh history
-    demos = rows[keep]
-    rb = demo_buffer(demos, compact=True, stride=K)
-    assert same(rb.storage.get(torch.arange(len(demos))), demos)
+@pytest.mark.slow
+@pytest.mark.parametrize("k", [2, 3])
+def test_pipeline_gym_stack_and_engine_agree_16_seeds_300_steps(k):
+    seen = _pipeline_vs_engine({**NON_GOAL, "frame_stride": k}, list(range(200, 216)), 300, auto_reset=k == 3)
+    assert seen["steps"] == 16 * 300 and seen["resets"] > 16
+    tally = compare({**NON_GOAL, "frame_stack": S, "frame_stride": k}, list(range(300, 316)), 300,
+                    random_actions(1.0), auto_reset=k == 2)
+    assert tally.steps == 16 * 300 and tally.resets > 16
 
 
-def test_a_strided_dataset_saves_each_frame_once_and_loads_back(tmp_path):
-    from memrl.data.demos import load_demos, read_metadata, save_demos
+def test_gym_vector_face_equals_sync_vector_env_at_stride_3():
+    n, config = 4, {**NON_GOAL, "frame_stack": S, "frame_stride": 3}
+    ref = gym.vector.SyncVectorEnv([lambda: LaneChangeEnv(config=config) for _ in range(n)])
+    vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", config=config)
+    assert vec.single_observation_space.shape == (S, 84, 84)
+    assert np.array_equal(ref.reset(seed=11)[0], vec.reset(seed=11)[0])
+    rng, finished = np.random.default_rng(0), 0
+    for _ in range(80):
+        actions = rng.integers(9, size=n)
+        a, b = ref.step(actions), vec.step(actions)
+        for x, y in zip(a[:4], b[:4], strict=True):
+            assert np.array_equal(x, y)
+        finished += int((a[2] | a[3]).sum())
+    assert finished > 0
 
-    rows = torch.cat(stream_steps(1, 30, seed=5, max_len=12, size=84, stride=K))
-    rows["action"] = rows["action"] % 9  # in the action range, flagged as demos
-    rows["is_demo"][:] = True
-    path = save_demos([rows[:13], rows[13:]], tmp_path / "d", {"env_config": {}, "frame_stride": K})
-    meta = read_metadata(path)
-    starts = int((rows["pixels"] == rows["pixels"][:, :1]).flatten(1).all(1).sum())
-    assert meta["frame_stride"] == K and meta["counts"]["frames"] == len(rows) + starts
-    assert same(load_demos(path), rows)
-    # the same data recorded at k = 1 is refused (its next stacks are not shifted stacks)
-    with pytest.raises(ValueError, match="shifted by one frame"):
-        save_demos(rows, tmp_path / "e", {"env_config": {}})
+
+def test_torchrl_batched_face_gives_the_engine_stacks():
+    config = {**NON_GOAL, "frame_stride": 3}
+    env = make_env(config, num_envs=3, seed=5)
+    check_env_specs(env)
+    env.set_seed(5)
+    td = env.rollout(40, break_when_any_done=False)
+    engine = BatchedLaneChange(config, 3)
+    engine.reset(seeds=[5, 6, 7])
+    rng_actions = td["action"]
+    assert np.array_equal(td["pixels"][:, 0].numpy(), engine.observation().numpy())
+    for t in range(40):
+        out = engine.step(rng_actions[:, t])
+        assert torch.equal(td["next", "pixels"][:, t], engine.observation())
+        assert torch.equal(td["next", "reward"][:, t, 0], out.reward.float())
+        done = torch.nonzero(out.terminated | out.truncated).flatten()
+        if len(done):
+            engine.reset(done)
+        if len(done) and t + 1 < 40:
+            assert torch.equal(td["pixels"][:, t + 1][done], engine.observation()[done])
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_strided_n_step_buffer_on_cuda_equals_the_cpu_one():
-    data = stream_steps(4, 40, seed=11, max_len=12, stride=K)
-    cpu = agent_buffer(100, 8, streams=4, n_step=3, gamma=0.9, stride=K)
-    gpu = agent_buffer(100, 8, streams=4, n_step=3, gamma=0.9, stride=K, device="cuda")
-    for step in data:
-        cpu.extend(step)
-        gpu.extend(step)
-    idx = torch.arange(100)
-    assert same(cpu.storage.get(idx), gpu.storage.get(idx).cpu())
+def test_stride_1_is_the_plain_stack():
+    """k = 1 adds no transform and keeps S frames: the pipeline of before."""
+    env = make_env({"frame_stride": 1})
+    names = [type(t).__name__ for t in env.transform]
+    assert "EveryKthFrame" not in names
+    assert next(t for t in env.transform if type(t).__name__ == "CatFrames").N == S
+    assert BatchedLaneChange({}, 2).history == S
+
+
+# ----------------------------------------------------------------------- learned cars
+@pytest.fixture(scope="module")
+def pool(tmp_path_factory):
+    from tests.helpers import save_pool
+
+    return save_pool(tmp_path_factory.mktemp("pool"), head_scale=100.0)  # no near-ties
+
+
+def _spy(controller, seen: list[np.ndarray]) -> None:
+    """Record the stacks a learned-car controller feeds its networks (first car of each call)."""
+    forward = controller.q_values
+
+    def q_values(index, stacks):
+        seen.append(stacks[0].cpu().numpy().copy())
+        return forward(index, stacks)
+
+    controller.q_values = q_values
+
+
+def test_learned_cars_see_the_env_stride_in_both_engines(pool):
+    """A learned car's network gets its own frames of steps t-3k, ..., t (the stride the agent,
+    and so the network, was trained with), in the reference and the engine alike."""
+    k, config = 3, {"opponent": {"type": "learned", "pool": pool}, "vehicles_count": 1, "frame_stride": 3}
+    env = LaneChangeEnv(config=config)
+    env.reset(seed=4)
+    engine = BatchedLaneChange(config, 1)
+    engine.reset(seeds=[4])
+    ref_seen: list[np.ndarray] = []
+    eng_seen: list[np.ndarray] = []
+    _spy(env._opponents.of_kind("learned"), ref_seen)
+    _spy(engine.learned, eng_seen)
+    for _ in range(15):
+        _, _, terminated, truncated, _ = env.step(4)
+        engine.step(torch.tensor([4]))
+        assert not (terminated or truncated)
+    assert len(ref_seen) == len(eng_seen) == 15
+    newest = [s[-1] for s in ref_seen]
+    assert len({f.tobytes() for f in newest}) == 15  # the car's view changes every step
+    for t, (ref, eng) in enumerate(zip(ref_seen, eng_seen, strict=True)):
+        assert np.array_equal(ref, _expected(newest, t, k)) and np.array_equal(eng, ref), t
+
+
+def test_learned_cars_act_alike_in_both_engines_at_stride_3(pool):
+    """Learned and constant cars among crashes and auto-resets (short: a forward pass per env
+    and step on the reference side)."""
+    config = {"opponent": {"type": "mixed", "pool": pool, "epsilon": 0.1}, "vehicles_count": 4,
+              "frame_stride": 3, "frame_stack": S}
+    tally = compare(config, list(range(4, 7)), 30, random_actions(1.0), auto_reset=True)
+    assert tally.resets > 0
+
+
+def test_evaluation_runners_and_deploy_baseline_agree_at_stride_3():
+    """The gym-env runner (FrameStack at the env's stride), the engine runner and the deploy
+    baseline's simulator episodes give the same episodes of a greedy Q-network at k = 3."""
+    from memrl.control.baseline import simulator_episode
+    from memrl.evaluation.policies import GreedyActor
+    from memrl.evaluation.runner import Job, run_jobs
+    from memrl.modules.policy import GreedyPolicy
+    from tests.test_engine_runner import qnet
+
+    net = qnet(0)  # acts on what it sees: these episodes end otherwise at stride 1
+    env_cfg = {"duration": 40, "vehicles_count": [0, 4], "initial_lane": "non_goal", "frame_stride": 3}
+    seeds = [11, 12, 13, 14]
+    jobs = [Job(env_cfg, "non_goal", list(enumerate(seeds)))]
+    gym_records = run_jobs(GreedyActor(net), jobs, engine=False).records
+    assert run_jobs(GreedyActor(net), jobs, engine=True).records == gym_records
+    consecutive = [Job({**env_cfg, "frame_stride": 1}, "non_goal", list(enumerate(seeds)))]
+    assert run_jobs(GreedyActor(net), consecutive, engine=True).records != gym_records
+    env = LaneChangeEnv(config=env_cfg)
+    runs = [simulator_episode(env, GreedyPolicy(net), s) for s in seeds]
+    assert [(r["collided"], r["reached_target"]) for r in runs] == \
+        [(r.collided, r.reached_target) for r in gym_records]

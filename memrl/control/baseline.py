@@ -21,7 +21,7 @@ def simulator_episode(env: LaneChangeEnv, policy: DrivingPolicy, seed: int,
     """One episode in ``env`` as is; returns collided, reached_target, success, overshoot [m]."""
     obs, _ = env.reset(seed=seed)
     policy.reset(env)
-    stack = FrameStack(frame_stack)
+    stack = FrameStack(frame_stack, env.cfg.frame_stride)
     frames = stack.reset(gray(obs)[None])
     start_y = float(env.vehicle.position[1])
     ys, collided = [start_y], False

@@ -16,7 +16,6 @@ at the true state and checks collisions.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -30,7 +29,7 @@ from memrl.control.tracking import TrackedCar
 from memrl.control.vehicle import VehicleModel
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import CurvatureVehicle
-from memrl.modules.policy import DrivingPolicy
+from memrl.modules.policy import DrivingPolicy, FrameStack
 
 
 class TrackedAgent(CurvatureVehicle):
@@ -125,8 +124,7 @@ def run_episode(env: LaneChangeEnv, policy: DrivingPolicy, car: TrackedCar, seed
                                         "curvature_step": env.cfg.curvature_step,
                                         "speed_limits": env.cfg.speed_limits,
                                         "curvature_limit": env.cfg.curvature_limit})
-    # Hand-written: TorchRL's CatFrames stacks tensordict entries; same 'repeat first' padding.
-    frames: deque[np.ndarray] = deque(maxlen=frame_stack)
+    stack = FrameStack(frame_stack, env.cfg.frame_stride)  # the TorchRL pipeline's stack
     actions: list[int] = []
     episode_return, collided, steps = 0.0, False, 0
     with believed_state(env, estimate, commands):
@@ -134,8 +132,8 @@ def run_episode(env: LaneChangeEnv, policy: DrivingPolicy, car: TrackedCar, seed
     while True:
         with believed_state(env, estimate, commands):
             frame = gray(env.observe_from(env.vehicle, env.target_lane))
-            frames.extend([frame] * (frame_stack if not frames else 1))
-            action = int(policy.act(env, np.stack(frames)))
+            pixels = stack.reset(frame[None]) if stack.frames is None else stack.push(frame[None])
+            action = int(policy.act(env, pixels))
         commands.apply_action(action)
         estimate = car.drive(commands.speed, commands.curvature, env.cfg.dt)
         _, reward, terminated, truncated, info = env.step(action)

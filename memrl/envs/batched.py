@@ -28,6 +28,7 @@ from memrl.envs.config import BatchedEnvError, LaneChangeConfig, env_config_dict
 from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
 from memrl.envs.scene import max_cars, sample_scene
+from memrl.envs.stride import history_length
 from memrl.envs.vehicles import ACTIONS, IDLE, N_ACTIONS
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
@@ -102,8 +103,9 @@ class BatchedLaneChange:
         config: env config values (as for ``gym.make("memrl/LaneChange-v0", config=...)``).
         num_envs: N >= 1.
         device: ``auto``, ``cpu``, ``cuda`` or ``cuda:K``.
-        frame_stack: frames per observation stack (oldest first; the first frame repeated
-            after a reset, as TorchRL's ``CatFrames``).
+        frame_stack: frames per observation stack (oldest first, ``config['frame_stride']``
+            steps apart; the first frame standing in for steps before a reset, as TorchRL's
+            ``CatFrames``; see :mod:`memrl.envs.stride`).
         opponents: the other cars' controllers (default: built from ``config['opponent']``;
             pass the reference env's to share a learned pool).
     """
@@ -126,6 +128,9 @@ class BatchedLaneChange:
             raise BatchedEnvError("env.bev.grayscale=false (RGB pictures) is for the reference env only; "
                                   "the batched engine draws grayscale frames")
         self.cfg, self.num_envs, self.frame_stack = cfg, int(num_envs), frame_stack
+        self.frame_stride = cfg.frame_stride
+        self.history = history_length(frame_stack, self.frame_stride)
+        """Frames kept per env (ring slots): the stack's span, ``(S - 1) * stride + 1``."""
         self.device = resolve_device(device)
         self.opponents = opponents or make_opponents(cfg.opponent)
         self.learned = next((c for c in self.opponents.controllers if c.kind == "learned"), None)
@@ -149,12 +154,12 @@ class BatchedLaneChange:
             View(b.width, b.height, b.lateral_scale, b.longitudinal_scale), cfg.lanes_count,
             cfg.lane_width, (cfg.vehicle_length, cfg.vehicle_width), show_target_lane=b.show_target_lane,
             dash_length=b.dash_length, path_length=b.path_length, channels=1, device=dev)
-        # frame ring [S, N, H, W] in one flat buffer: each slot followed by N scratch pictures
-        # (first frames of envs reset in the same render call, see step), then a spare last
-        # byte (the renderer's)
+        # frame ring [L, N, H, W] (L = history) in one flat buffer: each slot followed by N
+        # scratch pictures (first frames of envs reset in the same render call, see step),
+        # then a spare last byte (the renderer's)
         self._slot_size = 2 * n * b.height * b.width
-        self._ring = torch.zeros(frame_stack * self._slot_size + 1, dtype=torch.uint8, device=dev)
-        slots = self._ring[:-1].view(frame_stack, 2 * n, b.height, b.width)
+        self._ring = torch.zeros(self.history * self._slot_size + 1, dtype=torch.uint8, device=dev)
+        slots = self._ring[:-1].view(self.history, 2 * n, b.height, b.width)
         self._frames, self._scratch = slots[:, :n], slots[:, n:]
         self._ring_np = self._ring.numpy() if dev.type == "cpu" else None  # the same memory
         # on CPU, numpy's fancy indexing copies a few frames many times faster than torch's
@@ -163,7 +168,8 @@ class BatchedLaneChange:
         self._car_frames: torch.Tensor | None = None
         self._car_fresh = torch.zeros(n, c, dtype=torch.bool, device=dev)
         if self.learned is not None:
-            self._car_frames = torch.zeros(n, c, frame_stack, b.height, b.width, dtype=torch.uint8,
+            # each learned car's last L frames, newest last (it sees every stride-th)
+            self._car_frames = torch.zeros(n, c, self.history, b.height, b.width, dtype=torch.uint8,
                                            device=dev)
         ds = torch.tensor([a[0] for a in ACTIONS], dtype=f64, device=dev) * cfg.speed_step
         dk = torch.tensor([a[1] for a in ACTIONS], dtype=f64, device=dev) * cfg.curvature_step
@@ -281,7 +287,7 @@ class BatchedLaneChange:
         lo, hi = physics.lateral_extent(b["state"][:, 0], cfg.vehicle_length, cfg.vehicle_width)
         b["crashed"] |= (lo < -0.5 * w) | (hi > (cfg.lanes_count - 0.5) * w)
         b["reached"] |= physics.inside_target(lo, hi, b["target_lane"], w)
-        self._head = (self._head + 1) % self.frame_stack
+        self._head = (self._head + 1) % self.history
         comps, on_target = self._components(b)
         reward = physics.weighted_sum(comps, self._weights)
         crashed, reached = b["crashed"], b["reached"]
@@ -337,8 +343,9 @@ class BatchedLaneChange:
 
     def observation(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
         """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor), of
-        every env or of ``env_ids``."""
-        order = [(self._head + k) % self.frame_stack for k in range(1, self.frame_stack + 1)]
+        every env or of ``env_ids``: the frames of steps t - (S-1)k, ..., t - k, t."""
+        s, k = self.frame_stack, self.frame_stride
+        order = [(self._head - k * (s - 1 - j)) % self.history for j in range(s)]
         if env_ids is None:
             return torch.stack([self._frames[k] for k in order], dim=1)
         if self._frames_np is not None:
@@ -436,13 +443,14 @@ class BatchedLaneChange:
         me = state[torch.arange(len(env_i), device=self.device), slot_i]  # [M, 5]
         frames = self._draw((me[:, :2], self.car_target[env_i, slot_i], state[..., :3], labels,
                              me[:, [X, Y, HEADING, CURVATURE]]))
-        stacks = self._car_frames[env_i, slot_i]  # [M, S, H, W]
+        stacks = self._car_frames[env_i, slot_i]  # [M, L, H, W]
         fresh = self._car_fresh[env_i, slot_i]
         stacks = torch.where(fresh[:, None, None, None], frames[:, None].expand_as(stacks),
                              torch.cat([stacks[:, 1:], frames[:, None]], dim=1))
         self._car_frames[env_i, slot_i] = stacks
         self._car_fresh[env_i, slot_i] = False
-        q = self.learned.q_values(self.policy[env_i, slot_i], stacks)  # type: ignore[attr-defined]
+        seen = stacks if self.frame_stride == 1 else stacks[:, ::self.frame_stride].contiguous()
+        q = self.learned.q_values(self.policy[env_i, slot_i], seen)  # type: ignore[attr-defined]
         chosen = q.argmax(-1)
         eps = float(getattr(self.learned, "epsilon", 0.0))
         if eps > 0:  # per env, from the env's generator, in slot order, as the reference does

@@ -24,6 +24,9 @@ VERSION = 1
 TENSORS = ("state", "present", "is_learned", "car_target", "policy", "target_lane", "steps", "crashed",
            "reached", "car_fresh")
 """Engine attributes saved as they are (``car_fresh`` is ``_car_fresh``)."""
+LATER = {"frame_stride": 1}
+"""Keys (of the state and of its flattened config) added after version 1, with the value that
+states saved before them had: such a state still loads into an engine at that value."""
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -39,6 +42,7 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def _meta(engine: BatchedLaneChange) -> dict[str, Any]:
     return {"num_envs": engine.num_envs, "frame_stack": engine.frame_stack,
+            "frame_stride": engine.frame_stride,
             "car_slots": int(engine.present.shape[1]), "pool_size": engine.opponents.pool_size,
             "config": _flat(env_config_dict(engine.cfg))}
 
@@ -52,7 +56,7 @@ def engine_state(engine: BatchedLaneChange) -> dict[str, Any]:
     state: dict[str, Any] = {"version": VERSION, **_meta(engine)}
     for name in TENSORS:
         state[name] = _tensor(engine, name).clone()
-    state["frames"] = engine._frames.clone()  # [S, N, H, W], newest in slot `head`
+    state["frames"] = engine._frames.clone()  # [L, N, H, W] (L = history), newest in slot `head`
     state["head"] = engine._head
     state["car_frames"] = None if engine._car_frames is None else engine._car_frames.clone()
     # each env's generator: the scene draws of its next resets and its learned cars' exploration
@@ -66,10 +70,10 @@ def _mismatch(engine: BatchedLaneChange, state: dict[str, Any]) -> list[str]:
     diffs = []
     if state.get("version") != VERSION:
         diffs.append(f"state layout version {state.get('version')!r} (this engine reads {VERSION})")
-    for key in ("num_envs", "frame_stack", "car_slots", "pool_size"):
-        if state.get(key) != mine[key]:
-            diffs.append(f"{key}: saved {state.get(key)!r}, this engine {mine[key]!r}")
-    saved = state.get("config", {})
+    for key in ("num_envs", "frame_stack", "frame_stride", "car_slots", "pool_size"):
+        if state.get(key, LATER.get(key)) != mine[key]:
+            diffs.append(f"{key}: saved {state.get(key, LATER.get(key))!r}, this engine {mine[key]!r}")
+    saved = {**LATER, **state.get("config", {})}
     for key in sorted(set(saved) | set(mine["config"])):
         if saved.get(key, "<absent>") != mine["config"].get(key, "<absent>"):
             diffs.append(f"config {key}: saved {saved.get(key, '<absent>')!r}, "

@@ -159,6 +159,13 @@ class LaneChangeConfig:
     """Frames in the gym observation ``[frame_stack, H, W]`` (oldest first; after a reset the
     first frame repeated): 4 is the paper's observation, for gym users (SB3, CleanRL). The
     TorchRL pipeline (``make_env``) stacks frames itself and leaves this at 1."""
+    frame_stride: int = 1
+    """Steps between stacked frames, k: the stack at step t (0 at reset) holds the frames of
+    steps t - (S-1)k, ..., t - k, t (S frames, oldest first), the reset frame standing in for
+    steps before 0, as Atari's frame skip spaces its frames while the agent still acts every
+    step here. 1: consecutive frames, the paper's observation. Every engine uses it: the gym
+    stack (``frame_stack``), the TorchRL pipeline, the batched engine, the evaluation and
+    deploy runners and the learned cars' own views (see :mod:`memrl.envs.stride`)."""
     num_envs: int = 1
     """Envs the trainer steps together: 1 steps this highway-env env (the reference); N > 1
     the batched engine (:mod:`memrl.envs.batched`, the same task). A gym env is one env
@@ -270,6 +277,9 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
     stack = cfg.frame_stack
     _check(isinstance(stack, int) and not isinstance(stack, bool) and stack >= 1,
            "frame_stack", f"need an int >= 1, got {cfg.frame_stack!r}")
+    stride = cfg.frame_stride
+    _check(isinstance(stride, int) and not isinstance(stride, bool) and stride >= 1,
+           "frame_stride", f"need an int >= 1, got {cfg.frame_stride!r}")
     n = cfg.num_envs
     _check(isinstance(n, int) and not isinstance(n, bool) and n >= 1,
            "num_envs", f"need an int >= 1, got {cfg.num_envs!r}")

@@ -20,6 +20,7 @@ from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_co
 from memrl.envs.controllers import CarController, Opponents, make_opponents
 from memrl.envs.render import BEVRenderer, View, car_corners
 from memrl.envs.scene import sample_scene
+from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle, validate_action
 
 REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
@@ -56,8 +57,9 @@ class BEVObservation(ObservationType):
     """Bird's-eye-view crop centred on the observer car, channel-first uint8 ``[S * C, H, W]``.
 
     C is 1 (grayscale levels drawn directly, the default) or 3 (RGB), see ``bev.grayscale``;
-    S is ``frame_stack`` (the last S frames, oldest first; after a reset the first frame
-    repeated, as TorchRL's ``CatFrames``). ``frame_stack=4`` is the paper's observation.
+    S is ``frame_stack`` (frames ``frame_stride`` steps apart, oldest first, the newest the
+    current one; after a reset the first frame stands in for earlier steps, as TorchRL's
+    ``CatFrames``). ``frame_stack=4`` is the paper's observation.
     """
 
     def __init__(self, env: LaneChangeEnv) -> None:
@@ -328,14 +330,16 @@ class LaneChangeEnv(AbstractEnv):
         return img[None] if img.ndim == 2 else np.ascontiguousarray(img.transpose(2, 0, 1))
 
     def stack_frame(self, frame: np.ndarray) -> np.ndarray:
-        """The last ``frame_stack`` frames with ``frame`` the newest (pushed once per step)."""
+        """``frame_stack`` frames ``frame_stride`` steps apart with ``frame`` the newest (pushed
+        once per step; see :mod:`memrl.envs.stride`)."""
         key = (self._episode, self.steps)
         if self._stack is None or self._stack_key is None or key[0] != self._stack_key[0]:
-            self._stack = np.concatenate([frame] * self.cfg.frame_stack)  # a new episode
+            size = history_length(self.cfg.frame_stack, self.cfg.frame_stride)
+            self._stack = np.concatenate([frame] * size)  # a new episode: the kept history
         elif key != self._stack_key:
             self._stack = np.concatenate([self._stack[frame.shape[0]:], frame])
         self._stack_key = key
-        return self._stack
+        return select_frames(self._stack, frame.shape[0], self.cfg.frame_stride)
 
     def render(self) -> np.ndarray | None:
         """Full-scene RGB picture ``(H, W, 3)`` centred on the agent (``render_mode='rgb_array'``)."""

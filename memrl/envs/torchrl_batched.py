@@ -2,9 +2,10 @@
 
 Built by :func:`memrl.envs.torchrl_env.make_env` with ``num_envs=N``; its keys are those of
 the single-env pipeline with a leading env dimension: ``pixels`` uint8 ``[N, 4, H, W]`` (the
-engine's own frame stack, oldest first), ``action``, ``reward``, ``done`` / ``terminated`` /
-``truncated``, the flags of :data:`~memrl.envs.torchrl_env.INFO_KEYS`, and, from the
-``StepCounter`` / ``RewardSum`` transforms, ``step_count`` and ``episode_reward``. Envs are
+engine's own frame stack, oldest first, ``frame_stride`` steps apart), ``action``,
+``reward``, ``done`` / ``terminated`` / ``truncated``, the flags of
+:data:`~memrl.envs.torchrl_env.INFO_KEYS`, and, from the ``StepCounter`` / ``RewardSum``
+transforms, ``step_count`` and ``episode_reward``. Envs are
 reset by TorchRL's ``_reset`` mask (``step_and_maybe_reset`` / rollouts do it).
 """
 

@@ -7,11 +7,13 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
-from torchrl.data import Composite, Unbounded
+from tensordict import TensorDictBase
+from torchrl.data import Bounded, Composite, TensorSpec, Unbounded
 from torchrl.envs import (
     CatFrames,
     Compose,
     GrayScale,
+    ObservationTransform,
     RenameTransform,
     RewardSum,
     StepCounter,
@@ -23,6 +25,39 @@ from memrl.envs import ENV_ID, register_envs
 from memrl.envs.batched import INFO_KEYS
 from memrl.envs.config import validate_env_config
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.stride import history_length
+
+
+class EveryKthFrame(ObservationTransform):
+    """Keeps every ``stride``-th frame along ``dim`` of a ``CatFrames`` stack, the newest (last)
+    one included: ``CatFrames(N=(S-1)k+1)`` then this is the stack of S frames k steps apart.
+
+    Args:
+        stride: k >= 1 (1: the stack as it is).
+        dim: the frame dimension (CatFrames' ``dim``).
+        in_keys: the stacked keys.
+    """
+
+    def __init__(self, stride: int, dim: int = -3, in_keys: list[str] | None = None) -> None:
+        keys = in_keys or ["pixels"]
+        super().__init__(in_keys=keys, out_keys=list(keys))
+        self.stride, self.dim = int(stride), dim
+
+    def _apply_transform(self, obs: torch.Tensor) -> torch.Tensor:
+        # counted from the newest frame: with CatFrames' N = (S-1)k+1 both ends are kept
+        n = obs.shape[self.dim]
+        index = torch.arange((n - 1) % self.stride, n, self.stride, device=obs.device)
+        return obs.index_select(self.dim, index)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: TensorSpec) -> TensorSpec:
+        for key in self.in_keys:
+            spec = observation_spec[key]
+            low, high = self._apply_transform(spec.space.low), self._apply_transform(spec.space.high)
+            observation_spec[key] = Bounded(low, high, shape=low.shape, dtype=spec.dtype, device=spec.device)
+        return observation_spec
 
 
 def env_kwargs(env_cfg: Mapping[str, Any] | DictConfig | None) -> dict[str, Any]:
@@ -55,7 +90,8 @@ def make_env(
     """Build the lane-change env for TorchRL.
 
     Keys of the result: ``pixels`` uint8 ``[frame_stack, H, W]`` (grayscale frames, oldest
-    first), ``action`` (int64 index in [0, 9)), ``reward``, ``done``/``terminated``/``truncated``,
+    first, ``env_cfg['frame_stride']`` steps apart: see :mod:`memrl.envs.stride`), ``action``
+    (int64 index in [0, 9)), ``reward``, ``done``/``terminated``/``truncated``,
     ``step_count``, ``episode_reward`` and the flags of :data:`INFO_KEYS`.
 
     Args:
@@ -87,8 +123,12 @@ def make_env(
     transforms = [RenameTransform(in_keys=["observation"], out_keys=["pixels"])]
     if base.observation_spec["observation"].shape[-3] == 3:  # env drew RGB (bev.grayscale=false)
         transforms.append(GrayScale(in_keys=["pixels"]))
+    stride = validate_env_config(values).frame_stride
+    # CatFrames has no stride: it keeps the (S-1)k+1 frames the stack spans, EveryKthFrame picks S
+    transforms.append(CatFrames(N=history_length(frame_stack, stride), dim=-3, in_keys=["pixels"]))
+    if stride > 1:
+        transforms.append(EveryKthFrame(stride, dim=-3, in_keys=["pixels"]))
     transforms += [
-        CatFrames(N=frame_stack, dim=-3, in_keys=["pixels"]),
         StepCounter(),
         RewardSum(),
     ]

@@ -7,10 +7,11 @@
   hook renders the scene) run gym envs in lockstep batches, in worker processes.
 
 Both give the same :class:`EpisodeRecord` s (``tests/test_engine_runner.py``). Observations are
-exactly those of the TorchRL pipeline (``make_env``): the env's grayscale BEV frame, the last
-``frame_stack`` of them stacked oldest first, the first frame repeated after a reset
-(``CatFrames``' padding); ``tests/test_evaluate.py`` checks the equality step by step. The
-pipeline itself is not used here because its per-step overhead costs more than the env step.
+exactly those of the TorchRL pipeline (``make_env``): the env's grayscale BEV frame,
+``frame_stack`` of them ``env.frame_stride`` steps apart stacked oldest first, the first frame
+standing in for steps before a reset (``CatFrames``' padding); ``tests/test_evaluate.py``
+checks the equality step by step. The pipeline itself is not used here because its per-step
+overhead costs more than the env step.
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHoo
 def _start(actor: Actor, slot: int, env: LaneChangeEnv, index: int, seed: int, frame_stack: int,
            hook: StepHook | None) -> _Slot:
     obs, _ = env.reset(seed=seed)
-    stack = FrameStack(frame_stack)
+    stack = FrameStack(frame_stack, env.cfg.frame_stride)
     stack.reset(obs)
     actor.begin(slot, env, seed)
     if hook is not None:

@@ -19,6 +19,7 @@ import torch
 from torch.func import functional_call, stack_module_state
 
 from memrl.envs.controllers import CarController
+from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
 
 if TYPE_CHECKING:
@@ -139,11 +140,13 @@ class LearnedCarController(CarController):
             from torchrl.envs.transforms.functional import rgb_to_grayscale
 
             frame = rgb_to_grayscale(torch.from_numpy(frame)).numpy()
+        # the stride the agent (and so the network) was trained with: the env config's
+        stride = env.cfg.frame_stride
         if car.frames is None:  # like CatFrames(padding="same") at reset
-            car.frames = np.repeat(frame, 4, axis=0)
+            car.frames = np.repeat(frame, history_length(4, stride), axis=0)
         else:
             car.frames = np.concatenate([car.frames[1:], frame])
-        return car.frames
+        return select_frames(car.frames, 1, stride)
 
     def act(self, env: LaneChangeEnv, cars: Sequence[CurvatureVehicle]) -> np.ndarray:
         stacks = torch.from_numpy(np.stack([self._stack(env, car) for car in cars]))

@@ -20,6 +20,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.modules.qnet import QNetwork
 
@@ -41,26 +42,33 @@ class DrivingPolicy(ABC):
 
 
 class FrameStack:
-    """The last ``n`` frames along the channel axis, padded with the first frame after a reset.
+    """``n`` frames ``stride`` steps apart along the channel axis, oldest first, the first frame
+    standing in for the steps before a reset (:mod:`memrl.envs.stride`).
 
-    What TorchRL's ``CatFrames(padding="same")`` and the batched engine's frame ring give, for
-    a plain gym env stepped by hand (``tests/test_evaluate.py`` checks the equality).
+    What TorchRL's ``CatFrames(padding="same")`` (every ``stride``-th of its frames) and the
+    batched engine's frame ring give, for a plain gym env stepped by hand
+    (``tests/test_evaluate.py``, ``tests/test_frame_stride.py`` check the equality).
     """
 
     # Hand-written: mirrors TorchRL's CatFrames (padding="same") on plain numpy arrays.
-    def __init__(self, n: int = 4) -> None:
-        self.n = n
+    def __init__(self, n: int = 4, stride: int = 1) -> None:
+        self.n, self.stride = n, stride
+        self.history: np.ndarray | None = None
+        """The last ``(n - 1) * stride + 1`` frames, newest last."""
         self.frames: np.ndarray | None = None
+        """The stack (the observation)."""
 
     def reset(self, obs: np.ndarray) -> np.ndarray:
         """Start a stack from the reset observation ``[C, H, W]``; returns ``[n * C, H, W]``."""
-        self.frames = np.repeat(obs, self.n, axis=0)
+        self.history = np.concatenate([obs] * history_length(self.n, self.stride))
+        self.frames = select_frames(self.history, obs.shape[0], self.stride)
         return self.frames
 
     def push(self, obs: np.ndarray) -> np.ndarray:
         """Drop the oldest frame, append ``obs``; returns the stack."""
-        assert self.frames is not None, "FrameStack.push before reset"
-        self.frames = np.concatenate([self.frames[obs.shape[0]:], obs])
+        assert self.history is not None, "FrameStack.push before reset"
+        self.history = np.concatenate([self.history[obs.shape[0]:], obs])
+        self.frames = select_frames(self.history, obs.shape[0], self.stride)
         return self.frames
 
 
