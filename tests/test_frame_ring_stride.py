@@ -1,5 +1,5 @@
-"""Strided stacks in the replay frame ring (env.frame_stride k): refs, the ring bound, demos."""
-from per-stream histories of refs, the ring bound (tight), checkpoints, n-step on top."""
+"""Strided stacks in the replay frame ring (env.frame_stride k): stacks rebuilt from per-stream
+histories of refs, the ring bound (tight), checkpoints, n-step on top."""
 
 from __future__ import annotations
 

@@ -47,7 +47,6 @@ def test_n_step_run_killed_and_resumed_equals_an_uninterrupted_one(
                      BASE + ([f"+mode={mode}"] if mode else []))
 
 
-@pytest.mark.xfail(reason="needs env.frame_stride", strict=False)
 def test_strided_n_step_run_killed_and_resumed_equals_an_uninterrupted_one(
         compose_cfg, tmp_path, demos, monkeypatch):
     _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch, BASE + ["env.frame_stride=3"])

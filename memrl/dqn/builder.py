@@ -65,7 +65,7 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
     compact = bool(cfg.buffer.compact)  # each frame stored once
     store: dict[str, Any] = {"compact": compact, "streams": num_envs, "device": device}
     nstep = {"n_step": int(a.n_step), "gamma": float(a.gamma)}  # memrl.data.nstep
-    if int(cfg.env.get("frame_stride", 1)) != 1:  # frames between stacked frames
+    if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
         nstep["stride"] = int(cfg.env.frame_stride)
     terms = (TDTerm(), *spec.terms(cfg))
     lr = spec.lr(cfg)
