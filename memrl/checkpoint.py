@@ -182,7 +182,7 @@ class GreedyQPolicy(DrivingPolicy):
         if obs.dtype != np.uint8 or obs.shape[-3:] != (frames, 84, 84):
             raise ValueError(f"the policy takes uint8 observations of shape ({frames}, 84, 84), got "
                              f"{obs.dtype} {tuple(obs.shape)}: make the env with config={{'frame_stack': "
-                             f"{frames}}}")
+                             f"{frames}, 'frame_stride': <the run's env.frame_stride>}}")
         if self.epsilon > 0 and self.rng.random() < self.epsilon:
             return int(self.rng.integers(N_ACTIONS))
         return int(self.greedy.act_batch(torch.from_numpy(np.ascontiguousarray(obs))[None])[0])

@@ -161,7 +161,7 @@ def drive_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, seeds: Iterable[int],
     """
     # Hand-written: TorchRL's rollout costs more than the whole env step here.
     env = LaneChangeEnv(config=env_config_values(env_cfg))
-    stack = FrameStack(frame_stack)
+    stack = FrameStack(frame_stack, int(env.cfg.frame_stride))
     out = []
     try:
         for seed in seeds:
