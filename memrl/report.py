@@ -157,6 +157,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
         out_dir: where to write (default: Hydra's ``paths.output_dir``).
     """
     from memrl.evaluation import figures, stats, tables
+    from memrl.evaluation.crashes import crash_section
     from memrl.evaluation.results import find_results
 
     check_report(cfg)
@@ -173,6 +174,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     rows = stats.table(results, scfg)
     diffs = stats.differences(results, [list(p) for p in cfg.comparisons], scfg)
     md = tables.markdown(rows, diffs, scfg.confidence)
+    md += "\n" + "\n".join(crash_section([results], scfg))
     files = ReportFiles(out / "table3.md", out / "table3.csv", out / "differences.csv",
                         out / "report.json", markdown=md)
     files.table_md.write_text(md)

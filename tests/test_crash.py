@@ -95,3 +95,57 @@ def test_a_deep_rear_end_stays_ahead_and_the_nearest_of_two_cars_is_the_contact(
     kind, _ = classify(np.array([500.0, W, 0, 5.0, 0]),
                        np.array([[495.1, W, 0, 5.0, 0], [500.5, W - 1.9, 0, 5.0, 0]]), W, 2, L, B)
     assert kind_name(kind) == "side"
+
+
+def _crashed(records, kinds):
+    """Give the collided ``records`` the crash kinds, closing speeds and car counts of ``kinds``."""
+    crashed = [r for r in records if r.collided]
+    for r, (kind, speed, cars) in zip(crashed, kinds, strict=True):
+        r.crash_kind, r.closing_speed, r.vehicles = kind, speed, cars
+    return records
+
+
+def test_eval_json_and_the_report_table_count_crashes_by_kind_speed_and_cars(tmp_path):
+    import json
+
+    from memrl.evaluation.crashes import crash_section
+    from memrl.evaluation.protocol import ProtocolConfig, scenario_seeds
+    from memrl.evaluation.results import read_result, write_result
+    from memrl.evaluation.stats import StatsConfig
+    from tests.eval_helpers import records
+
+    recs = records([True, False, False, False, True, False], [True] * 6, lane="non_goal")
+    kinds = [("ahead", 2.0, 1), ("ahead", 4.0, 1), ("side", -0.5, 3), ("road_edge", 0.3, 0)]
+    recs = _crashed(recs, kinds)
+    result = write_result(tmp_path / "e", "Default", recs, ProtocolConfig(episodes=6, initial_lanes=("non_goal",)),
+                          scenario_seeds(0, 6), {"unit": "seed 0"})
+    assert result.records() == recs  # the CSV keeps kind and speed (None without a crash)
+    doc = json.loads((tmp_path / "e" / "eval.json").read_text())["crashes"]["non_goal"]
+    assert (doc["episodes"], doc["crashes"]) == (6, 4)
+    assert doc["by_kind"]["ahead"] == {"count": 2, "mean_closing": 3.0, "median_closing": 3.0,
+                                       "by_cars": {"1": 2}}
+    assert doc["by_kind"]["behind"] == {"count": 0, "mean_closing": None, "median_closing": None,
+                                        "by_cars": {}}
+    assert doc["by_kind"]["side"]["by_cars"] == {"3": 1} and doc["by_kind"]["road_edge"]["count"] == 1
+    lines = crash_section([[read_result(tmp_path / "e")]], StatsConfig())
+    assert "| row | kind | crashes | closing mean / median | 0 cars | 1 car | 3 cars |" in lines
+    assert "| Default (6) | ahead | 2 | 3.00 / 3.00 | 0 | 2 | 0 |" in lines
+    assert "| Default (6) | road_edge | 1 | 0.30 / 0.30 | 1 | 0 | 0 |" in lines
+    assert not any("| behind |" in line for line in lines)
+
+
+def test_csvs_from_before_the_crash_columns_still_read(tmp_path):
+    import csv
+
+    from memrl.evaluation.protocol import record_from_row
+    from tests.eval_helpers import records
+
+    row = records([False], [False])[0].row()
+    del row["crash_kind"], row["closing_speed"]
+    with (tmp_path / "old.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, list(row))
+        w.writeheader()
+        w.writerow(row)
+    with (tmp_path / "old.csv").open(newline="") as f:
+        rec = record_from_row(next(csv.DictReader(f)))
+    assert rec.collided and rec.crash_kind == "" and rec.closing_speed is None
