@@ -117,8 +117,8 @@ def test_eval_json_and_the_report_table_count_crashes_by_kind_speed_and_cars(tmp
     recs = records([True, False, False, False, True, False], [True] * 6, lane="non_goal")
     kinds = [("ahead", 2.0, 1), ("ahead", 4.0, 1), ("side", -0.5, 3), ("road_edge", 0.3, 0)]
     recs = _crashed(recs, kinds)
-    result = write_result(tmp_path / "e", "Default", recs, ProtocolConfig(episodes=6, initial_lanes=("non_goal",)),
-                          scenario_seeds(0, 6), {"unit": "seed 0"})
+    protocol = ProtocolConfig(episodes=6, initial_lanes=("non_goal",))
+    result = write_result(tmp_path / "e", "Default", recs, protocol, scenario_seeds(0, 6), {"unit": "seed 0"})
     assert result.records() == recs  # the CSV keeps kind and speed (None without a crash)
     doc = json.loads((tmp_path / "e" / "eval.json").read_text())["crashes"]["non_goal"]
     assert (doc["episodes"], doc["crashes"]) == (6, 4)
