@@ -654,6 +654,8 @@ def check_dagger(cfg: DictConfig) -> None:
 
     check_fields(DaggerSchema, cfg)
     check_fields(AgentConfig, cfg.agent, "agent.")
+    if int(cfg.agent.get("threads", 0)) < 0:
+        raise config_error("agent.threads", f"must be >= 0, got {cfg.agent.threads}")
     check_env(cfg.env)
     if cfg.demos.source != "scripted":
         raise config_error("demos", f"the expert reads the world state: demos=scripted, not "
