@@ -95,7 +95,8 @@ def _rollouts(cfg: DictConfig, results: list[EvalResult], out: Path, files: Repo
 
 
 def _rollout_row(cfg: DictConfig, g: RowGroup, out: Path, files: ReportFiles) -> None:
-    """Fig. 7 strip and video of one row's first unit (or ``rollouts.unit``)."""
+    """Fig. 7 strip and video of one row's first unit (or ``rollouts.unit``), and strips of its
+    crashes by kind (``rollouts.crashes`` per kind, the last ``rollouts.crash_frames`` steps)."""
     from memrl.evaluation import rollouts
 
     r = cfg.rollouts
@@ -132,6 +133,12 @@ def _rollout_row(cfg: DictConfig, g: RowGroup, out: Path, files: ReportFiles) ->
     files.strips.append(rollouts.write_png(picture, out / f"fig7_{name}.png"))
     if r.video:
         files.videos.append(rollouts.write_video(caps, out / f"rollouts_{name}.mp4", float(r.fps)))
+    if int(r.get("crashes", 0)):
+        from memrl.evaluation.crash_strips import crash_strips
+
+        for kind, img in crash_strips(actor, result, label, int(r.crashes), int(r.crash_frames),
+                                      float(r.scale)).items():
+            files.strips.append(rollouts.write_png(img, out / f"crashes_{name}_{kind}.png"))
 
 
 def _plain(cfg: DictConfig, out: Path) -> dict:

@@ -285,6 +285,10 @@ class RolloutsSchema:
     scale: float = spec(gt=0)
     video: bool = MISSING
     fps: float = spec(gt=0)
+    crashes: int = spec(ge=0)
+    """Crashed episodes per kind replayed into ``crashes_<row>_<kind>.png`` (0: none)."""
+    crash_frames: int = spec(ge=1)
+    """Steps shown up to each crash."""
 
 
 @dataclass

@@ -149,3 +149,28 @@ def test_csvs_from_before_the_crash_columns_still_read(tmp_path):
     with (tmp_path / "old.csv").open(newline="") as f:
         rec = record_from_row(next(csv.DictReader(f)))
     assert rec.collided and rec.crash_kind == "" and rec.closing_speed is None
+
+
+def test_crash_strips_show_the_last_frames_of_the_first_crashes_of_a_kind(tmp_path):
+    from memrl.evaluation.crash_strips import crash_records, crash_strip
+    from memrl.evaluation.protocol import ProtocolConfig, scenario_seeds
+    from memrl.evaluation.results import write_result
+    from memrl.evaluation.rollouts import Capture
+    from tests.eval_helpers import records
+
+    recs = records([False, True, False, False], [False] * 4, lane="random") + \
+        records([False, False], [False] * 2, lane="non_goal")
+    recs = _crashed(recs, [("side", 0.1, 2), ("ahead", 3.0, 1), ("side", 0.2, 4), ("side", 0.3, 5),
+                           ("road_edge", 0.5, 0)])
+    result = write_result(tmp_path / "e", "A", recs, ProtocolConfig(episodes=4), scenario_seeds(0, 4),
+                          {"unit": "seed 0"})
+    picked = crash_records(result, "side", 2)  # non-goal starts first, then by episode
+    assert [(r.initial_lane, r.episode) for r in picked] == [("non_goal", 0), ("random", 0)]
+    assert crash_records(result, "behind", 2) == []
+    scene = np.zeros((40, 60, 3), np.uint8)
+    caps = [Capture(r, [scene] * 12) for r in picked]
+    img = crash_strip(caps, 8, "title")
+    gap = 6
+    assert img.shape[1] == 8 * 60 + 7 * gap and img.dtype == np.uint8
+    short = crash_strip([Capture(picked[0], [scene] * 3)], 8, "t")  # an episode shorter than 8 steps
+    assert short.shape[1] >= 3 * 60 + 2 * gap
