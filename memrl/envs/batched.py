@@ -328,7 +328,8 @@ class BatchedLaneChange:
         if len(ids) == 0:
             return
         cfg = self.cfg
-        state, present = self.state[ids].cpu().numpy(), self.present[ids].cpu().numpy()
+        at = torch.as_tensor(ids, device=self.device)
+        state, present = self.state[at].cpu().numpy(), self.present[at].cpu().numpy()
         for row, i in enumerate(ids.tolist()):
             kind, closing = classify_rows(state[row], present[row], cfg.lane_width, cfg.lanes_count,
                                           cfg.vehicle_length, cfg.vehicle_width)
