@@ -2,50 +2,20 @@
 
 Each collided :class:`~memrl.evaluation.protocol.EpisodeRecord` carries the kind and closing
 speed of its crash (:mod:`memrl.envs.crash`, the same in both engines) and the number of other
-cars in its scene. This module summarises them for ``eval.json`` (:func:`summary`) and for the
-evaluation and study reports (:func:`crash_section`: one table per Table III row, pooled over
-the row's units and both initial-lane settings).
+cars in its scene; :mod:`memrl.evaluation.crash_counts` counts them (``eval.json``), and
+:func:`crash_section` makes the evaluation and study reports' table: one line per Table III
+row and kind, pooled over the row's units and both initial-lane settings.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING, Any
-
-import numpy as np
+from collections.abc import Sequence
+from typing import Any
 
 from memrl.envs.crash import CRASH_KINDS
-from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
-
-if TYPE_CHECKING:  # results.py writes summary() into eval.json: no import of it at run time
-    from memrl.evaluation import stats
-    from memrl.evaluation.results import EvalResult
-
-
-def summary(records: Iterable[EpisodeRecord]) -> dict[str, Any]:
-    """Crashes of ``records``: ``episodes``, ``crashes``, and per kind ``count``, ``mean_closing``,
-    ``median_closing`` [m/s] (None without crashes) and ``by_cars`` (other cars -> crashes)."""
-    recs = list(records)
-    crashed = [r for r in recs if r.collided and r.crash_kind]
-    kinds: dict[str, Any] = {}
-    for kind in CRASH_KINDS:
-        mine = [r for r in crashed if r.crash_kind == kind]
-        speeds = [r.closing_speed for r in mine if r.closing_speed is not None]
-        cars: dict[int, int] = {}
-        for r in mine:
-            cars[r.vehicles] = cars.get(r.vehicles, 0) + 1
-        kinds[kind] = {"count": len(mine),
-                       "mean_closing": round(float(np.mean(speeds)), 4) if speeds else None,
-                       "median_closing": round(float(np.median(speeds)), 4) if speeds else None,
-                       "by_cars": {str(k): cars[k] for k in sorted(cars)}}
-    return {"episodes": len(recs), "crashes": len(crashed), "by_kind": kinds}
-
-
-def by_lane(records: Iterable[EpisodeRecord]) -> dict[str, dict[str, Any]]:
-    """:func:`summary` per initial-lane setting (``eval.json``'s ``crashes``)."""
-    recs = list(records)
-    return {lane: summary(r for r in recs if r.initial_lane == lane)
-            for lane in INITIAL_LANES if any(r.initial_lane == lane for r in recs)}
+from memrl.evaluation import stats
+from memrl.evaluation.crash_counts import summary
+from memrl.evaluation.results import EvalResult
 
 
 def _row_lines(label: str, s: dict[str, Any], cars: list[int]) -> list[str]:
@@ -67,8 +37,6 @@ def crash_section(groups: Sequence[Sequence[EvalResult]], cfg: stats.StatsConfig
     """Markdown: per Table III row (each of ``groups`` split into rows as the table is), crashes
     by kind, mean / median closing speed, and crashes by number of other cars, pooled over the
     row's units and initial-lane settings. Empty when no result has crash records."""
-    from memrl.evaluation import stats
-
     rows = []
     for results in groups:
         for g in stats.rows_of(results, cfg):

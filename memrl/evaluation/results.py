@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from memrl.evaluation.crashes import by_lane as crashes_by_lane
+from memrl.evaluation.crash_counts import by_lane as crashes_by_lane
 from memrl.evaluation.protocol import (
     CSV_FIELDS,
     EpisodeRecord,
