@@ -94,7 +94,7 @@ class StepOut:
     """int64 crash kind code (:data:`memrl.envs.crash.CRASH_KINDS` index + 1; 0: no crash),
     from the state at the crash (the reference env's ``info['crash_kind']``)."""
     closing_speed: torch.Tensor | None = None
-    """float64 closing speed [m/s] of the crash (NaN: no crash; ``info['closing_speed']``)."""
+    """float64 closing speed [m/s] of the crash (0 without one; ``info['closing_speed']``)."""
     reset_ids: torch.Tensor | None = None
     """``step(auto_reset=True)``: the envs this step finished and reset (else None)."""
     final_observation: torch.Tensor | None = None
@@ -151,7 +151,7 @@ class BatchedLaneChange:
         self.reached = torch.zeros(n, dtype=torch.bool, device=dev)
         self.crash_kind = torch.zeros(n, dtype=torch.long, device=dev)
         """Crash kind code per env (0 until the episode's crash; :mod:`memrl.envs.crash`)."""
-        self.closing_speed = torch.full((n,), float("nan"), dtype=f64, device=dev)
+        self.closing_speed = torch.zeros(n, dtype=f64, device=dev)
         self.rngs: list[np.random.Generator | None] = [None] * n
         b = cfg.bev
         self.renderer = BEVRenderer(
@@ -254,7 +254,7 @@ class BatchedLaneChange:
         b["steps"][at] = 0
         b["crashed"][at] = False
         b["crash_kind"][at] = NO_CRASH
-        b["closing_speed"][at] = float("nan")
+        b["closing_speed"][at] = 0.0
         b["car_fresh"][at] = True
 
     # ----------------------------------------------------------------------------- step

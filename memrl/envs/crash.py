@@ -62,7 +62,7 @@ def classify(agent: np.ndarray, others: np.ndarray, lane_width: float, lanes_cou
         lane_width, lanes_count: the road.
         length, width: the car body [m].
 
-    Returns ``(NO_CRASH, nan)`` when nothing touches (not a crash state).
+    Returns ``(NO_CRASH, 0.0)`` when nothing touches (not a crash state).
     """
     agent = np.asarray(agent, dtype=np.float64)
     others = np.asarray(others, dtype=np.float64).reshape(-1, 5)
@@ -90,7 +90,7 @@ def classify(agent: np.ndarray, others: np.ndarray, lane_width: float, lanes_cou
         return CRASH_KINDS.index("road_edge") + 1, -vy
     if y.max() > (lanes_count - 0.5) * lane_width:
         return CRASH_KINDS.index("road_edge") + 1, vy
-    return NO_CRASH, float("nan")
+    return NO_CRASH, 0.0
 
 
 def classify_rows(state: Any, present: Any, lane_width: float, lanes_count: int, length: float,

@@ -85,7 +85,8 @@ class LaneChangeEnv(AbstractEnv):
     ``on_target_lane`` and ``reached_target`` (all four corners of the agent inside the
     target lane at some step of the episode so far), and of a crash its kind and closing
     speed (``crash_kind``: code of :data:`memrl.envs.crash.CRASH_KINDS`, 0 without a crash;
-    ``closing_speed`` [m/s], NaN without one; :func:`memrl.envs.crash.classify`).
+    ``closing_speed`` [m/s], 0 without one (not NaN: gymnasium's checker compares infos);
+    :func:`memrl.envs.crash.classify`).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -309,7 +310,7 @@ class LaneChangeEnv(AbstractEnv):
 
     def _crash_info(self) -> dict:
         """``crash_kind`` and ``closing_speed`` of the current state (see :mod:`memrl.envs.crash`)."""
-        kind, closing = NO_CRASH, float("nan")
+        kind, closing = NO_CRASH, 0.0
         if self.vehicle.crashed:
             rows = [[c.position[0], c.position[1], c.heading, c.speed, c.curvature]
                     for c in (self.vehicle, *self.others)]

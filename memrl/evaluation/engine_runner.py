@@ -89,7 +89,7 @@ class _Lane:
             initial_lane=self.job.initial_lane, episode=self.index[i], seed=self.seed[i], steps=steps[i],
             episode_return=rets[i], collided=c, reached_target=r, duration=self.engine.cfg.duration,
             target_lane=self.target_lane[i], start_lane=self.start_lane[i], vehicles=self.vehicles[i],
-            crash_kind=kind_name(k), closing_speed=closing_or_none(v))
+            crash_kind=kind_name(k), closing_speed=closing_or_none(k, v))
             for i, c, r, k, v in zip(ids, collided, reached, kinds, closing, strict=True)]
 
 

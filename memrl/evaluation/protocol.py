@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -115,9 +114,9 @@ def protocol_id(protocol: ProtocolConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def closing_or_none(value: float) -> float | None:
-    """A closing speed as an :class:`EpisodeRecord` holds it: None for the engines' NaN (no crash)."""
-    return None if math.isnan(value) else float(value)
+def closing_or_none(kind: int, value: float) -> float | None:
+    """A closing speed as an :class:`EpisodeRecord` holds it: None without a crash (kind 0)."""
+    return None if int(kind) == 0 else float(value)
 
 
 @dataclass

@@ -119,7 +119,7 @@ def _step(env: LaneChangeEnv, slot: _Slot, action: int, job: Job, hook: StepHook
             reached_target=bool(info["reached_target"]), duration=env.cfg.duration,
             target_lane=int(env.target_lane), start_lane=slot.start_lane, vehicles=slot.vehicles,
             crash_kind=kind_name(int(info["crash_kind"])),
-            closing_speed=closing_or_none(float(info["closing_speed"])))
+            closing_speed=closing_or_none(int(info["crash_kind"]), float(info["closing_speed"])))
     if hook is not None:
         hook(env, slot.stack.frames, action, record)  # type: ignore[arg-type]
     return record
