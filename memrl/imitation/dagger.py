@@ -215,4 +215,5 @@ def _write_log(out_dir: Path, logs: list[IterationLog]) -> None:
     with (out_dir / "dagger.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, list(asdict(logs[0])))
         w.writeheader()
-        w.writerows(asdict(r) for r in logs)
+        w.writerows({k: round(v, 4) if isinstance(v, float) else v for k, v in asdict(r).items()}
+                    for r in logs)
