@@ -95,6 +95,8 @@ def test_dagger_aggregates_labels_over_iterations_and_its_run_evaluates(compose_
     summary = json.loads((run / "summary.json").read_text())
     assert summary["dataset"] == 24 and summary["env_steps"] == 24 and summary["loss"] == "cross_entropy"
     assert (run / "checkpoints" / "final.pt").is_file() and (run / "config.yaml").is_file()
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == \
+        ["final.pt", "iteration_0.pt", "iteration_1.pt", "iteration_2.pt"]
     [result] = evaluate(compose_cfg("evaluate", [f"policy.run={run}", *SMALL_EVAL]), out_dir=tmp_path / "x")
     assert result.name == "DAgger" and result.path == run / "eval"
     doc = json.loads((run / "eval" / "eval.json").read_text())

@@ -180,6 +180,7 @@ def run_dagger(cfg: DictConfig, out_dir: Path) -> list[IterationLog]:
     net.eval()
     opt = torch.optim.Adam(net.parameters(), lr=float(cfg.lr))
     data, logs = Dataset(), []
+    env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     for it in range(int(cfg.iterations)):
         obs, labels, mine, ends = driver.collect(int(cfg.steps_per_iteration), net if it > 0 else None,
                                                  float(cfg.beta))
@@ -198,7 +199,8 @@ def run_dagger(cfg: DictConfig, out_dir: Path) -> list[IterationLog]:
                  "agreement %.1f%%, loss %.3f, train accuracy %.1f%%", it, row.collected, row.dataset,
                  n_ep, row.survival, row.goal, row.agreement, loss, acc)
         _write_log(out_dir, logs)
-    env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
+        save_qnet(out_dir / "checkpoints" / f"iteration_{it}.pt", net, env_cfg,  # type: ignore[arg-type]
+                  {"dagger": {"iterations": it + 1, "dataset": len(data)}})
     save_qnet(out_dir / "checkpoints" / "final.pt", net, env_cfg,  # type: ignore[arg-type]
               {"dagger": {"iterations": len(logs), "dataset": len(data)}})
     summary = {"kind": "dagger", "iterations": len(logs), "dataset": len(data),
