@@ -95,7 +95,8 @@ def _rollouts(cfg: DictConfig, results: list[EvalResult], out: Path, files: Repo
 
 
 def _rollout_row(cfg: DictConfig, g: RowGroup, out: Path, files: ReportFiles) -> None:
-    """Fig. 7 strip and video of one row's first unit (or ``rollouts.unit``)."""
+    """Fig. 7 strip and video of one row's first unit (or ``rollouts.unit``), and strips of its
+    crashes by kind (``rollouts.crashes`` per kind, the last ``rollouts.crash_frames`` steps)."""
     from memrl.evaluation import rollouts
 
     r = cfg.rollouts
@@ -132,6 +133,12 @@ def _rollout_row(cfg: DictConfig, g: RowGroup, out: Path, files: ReportFiles) ->
     files.strips.append(rollouts.write_png(picture, out / f"fig7_{name}.png"))
     if r.video:
         files.videos.append(rollouts.write_video(caps, out / f"rollouts_{name}.mp4", float(r.fps)))
+    if int(r.get("crashes", 0)):
+        from memrl.evaluation.crash_strips import crash_strips
+
+        for kind, img in crash_strips(actor, result, label, int(r.crashes), int(r.crash_frames),
+                                      float(r.scale)).items():
+            files.strips.append(rollouts.write_png(img, out / f"crashes_{name}_{kind}.png"))
 
 
 def _plain(cfg: DictConfig, out: Path) -> dict:
@@ -157,6 +164,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
         out_dir: where to write (default: Hydra's ``paths.output_dir``).
     """
     from memrl.evaluation import figures, stats, tables
+    from memrl.evaluation.crashes import crash_section
     from memrl.evaluation.results import find_results
 
     check_report(cfg)
@@ -173,6 +181,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     rows = stats.table(results, scfg)
     diffs = stats.differences(results, [list(p) for p in cfg.comparisons], scfg)
     md = tables.markdown(rows, diffs, scfg.confidence)
+    md += "\n" + "\n".join(crash_section([results], scfg))
     files = ReportFiles(out / "table3.md", out / "table3.csv", out / "differences.csv",
                         out / "report.json", markdown=md)
     files.table_md.write_text(md)

@@ -292,6 +292,10 @@ class RolloutsSchema:
     scale: float = spec(gt=0)
     video: bool = MISSING
     fps: float = spec(gt=0)
+    crashes: int = spec(ge=0)
+    """Crashed episodes per kind replayed into ``crashes_<row>_<kind>.png`` (0: none)."""
+    crash_frames: int = spec(ge=1)
+    """Steps shown up to each crash."""
 
 
 @dataclass
@@ -629,13 +633,56 @@ def check_study(cfg: DictConfig) -> None:
                            "the folder of the earlier study whose runs this one continues")
 
 
+# ---------------------------------------------------------------------------------------------
+# dagger
+
+
+@dataclass
+class DaggerSchema:
+    """``conf/dagger.yaml``: DAgger with the scripted driver on call (:mod:`memrl.imitation.dagger`)."""
+
+    task_name: str = MISSING
+    seed: int = spec(ge=0, le=SEED_MAX)
+    iterations: int = spec(ge=1)
+    """DAgger iterations (0: the expert drives)."""
+    steps_per_iteration: int = spec(ge=1)
+    """Env steps per env and iteration."""
+    beta: float = spec(ge=0.0, le=1.0)
+    """Iterations >= 1: probability per step that the expert's action is taken."""
+    epochs: int = spec(ge=1)
+    batch_size: int = spec(ge=1)
+    lr: float = spec(gt=0.0)
+    mode: Any = MISSING
+    progress: bool = MISSING
+    debug: bool = MISSING
+    env: Any = MISSING
+    agent: Any = MISSING
+    demos: Any = MISSING
+    paths: Any = MISSING
+
+
+def check_dagger(cfg: DictConfig) -> None:
+    """Every value of a dagger config: its own keys, the env, the learner's and the expert's."""
+    from memrl.dqn.config import AgentConfig
+
+    check_fields(DaggerSchema, cfg)
+    check_fields(AgentConfig, cfg.agent, "agent.")
+    if int(cfg.agent.get("threads", 0)) < 0:
+        raise config_error("agent.threads", f"must be >= 0, got {cfg.agent.threads}")
+    check_env(cfg.env)
+    if cfg.demos.source != "scripted":
+        raise config_error("demos", f"the expert reads the world state: demos=scripted, not "
+                           f"demos={cfg.demos.source}")
+    check_writable(str(cfg.paths.output_root), "paths.output_root")
+
+
 SCHEMAS: dict[str, type] = {"train": TrainSchema, "record": RecordSchema, "evaluate": EvaluateSchema,
                             "report": ReportSchema, "deploy": DeploySchema, "bench": BenchSchema,
-                            "preview": PreviewSchema, "study": StudySchema}
+                            "preview": PreviewSchema, "study": StudySchema, "dagger": DaggerSchema}
 """Config name -> schema of its top-level keys (registered as ``<name>_schema``)."""
 
 CHECKS: dict[str, Callable[[DictConfig], None]] = {
     "train": check_train, "record": check_record, "evaluate": check_evaluate,
     "report": check_report, "deploy": check_deploy, "bench": check_bench, "preview": check_preview,
-    "study": check_study}
+    "study": check_study, "dagger": check_dagger}
 """Config name -> the check of everything that command reads."""

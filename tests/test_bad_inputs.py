@@ -29,6 +29,7 @@ RUN_MARKERS = ("config.yaml", "summary.json", "checkpoints", "episodes.csv", "me
 
 def commands():
     from memrl.bench import bench
+    from memrl.dagger import dagger
     from memrl.deploy import deploy
     from memrl.evaluate import evaluate
     from memrl.preview import preview
@@ -40,7 +41,8 @@ def commands():
     return {"train": lambda c, out: train(c, out), "record": lambda c, out: record(c),
             "evaluate": lambda c, out: evaluate(c, out), "report": lambda c, out: report(c, out),
             "deploy": lambda c, out: deploy(c, out), "bench": lambda c, out: bench(c, out),
-            "preview": lambda c, out: preview(c, out), "study": lambda c, out: study(c)}
+            "preview": lambda c, out: preview(c, out), "study": lambda c, out: study(c),
+            "dagger": lambda c, out: dagger(c)}
 
 
 def left_behind(root: Path) -> list[Path]:
@@ -185,6 +187,19 @@ ROWS = [
     ("study", ["study.nmae=x"], "study.nmae"),
     ("study", ["protocol.episodes=0"], "episodes"),
     ("study", ["debug=maybe"], "debug"),
+    # dagger
+    ("dagger", ["seed=-1"], "seed"),
+    ("dagger", ["iterations=0"], "iterations"),
+    ("dagger", ["steps_per_iteration=0"], "steps_per_iteration"),
+    ("dagger", ["beta=1.5"], "beta"),
+    ("dagger", ["epochs=0"], "epochs"),
+    ("dagger", ["batch_size=0"], "batch_size"),
+    ("dagger", ["lr=0"], "lr"),
+    ("dagger", ["progress=maybe"], "progress"),
+    ("dagger", ["debug=maybe"], "debug"),
+    ("dagger", ["env.num_envs=0"], "num_envs"),
+    ("dagger", ["agent.threads=-1"], "agent.threads"),
+    ("dagger", ["demos=human"], "demos"),
 ]
 
 
@@ -324,6 +339,7 @@ CLI_ROWS = [
     (["memrl.record", "episodes=0"], "'episodes'"),
     (["memrl.bench", "nope"], "benchmarks"),
     (["memrl.study", "study.train_overrides=['agent.lrr=1']"], "agent.lrr"),
+    (["memrl.dagger", "iterations=0"], "'iterations'"),
 ]
 
 

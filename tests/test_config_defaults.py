@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
-COMMANDS = ("train", "record", "evaluate", "report", "deploy", "bench", "preview", "study")
+COMMANDS = ("train", "record", "evaluate", "report", "deploy", "bench", "preview", "study", "dagger")
 GROUP_FILES = {("train", "env"): "env/lane_change.yaml", ("train", "agent"): "agent/dqn.yaml",
                ("train", "buffer"): "buffer/default.yaml", ("deploy", "deploy"): "deploy/default.yaml",
                ("evaluate", "protocol"): "protocol/paper.yaml"}

@@ -26,6 +26,7 @@ from memrl.envs import batched_physics as physics
 from memrl.envs.batched_state import engine_state, load_engine_state
 from memrl.envs.config import BatchedEnvError, LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import Opponents, make_opponents
+from memrl.envs.crash import NO_CRASH, classify_rows
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
 from memrl.envs.scene import max_cars, sample_scene
 from memrl.envs.stride import history_length
@@ -90,6 +91,11 @@ class StepOut:
     collided: torch.Tensor
     on_target_lane: torch.Tensor
     reached_target: torch.Tensor
+    crash_kind: torch.Tensor | None = None
+    """int64 crash kind code (:data:`memrl.envs.crash.CRASH_KINDS` index + 1; 0: no crash),
+    from the state at the crash (the reference env's ``info['crash_kind']``)."""
+    closing_speed: torch.Tensor | None = None
+    """float64 closing speed [m/s] of the crash (0 without one; ``info['closing_speed']``)."""
     reset_ids: torch.Tensor | None = None
     """``step(auto_reset=True)``: the envs this step finished and reset (else None)."""
     final_observation: torch.Tensor | None = None
@@ -148,6 +154,9 @@ class BatchedLaneChange:
         self.steps = torch.zeros(n, dtype=torch.long, device=dev)
         self.crashed = torch.zeros(n, dtype=torch.bool, device=dev)
         self.reached = torch.zeros(n, dtype=torch.bool, device=dev)
+        self.crash_kind = torch.zeros(n, dtype=torch.long, device=dev)
+        """Crash kind code per env (0 until the episode's crash; :mod:`memrl.envs.crash`)."""
+        self.closing_speed = torch.zeros(n, dtype=f64, device=dev)
         self.rngs: list[np.random.Generator | None] = [None] * n
         b = cfg.bev
         self.renderer = BEVRenderer(
@@ -177,7 +186,7 @@ class BatchedLaneChange:
             "state": self.state, "crashed": self.crashed, "reached": self.reached, "steps": self.steps,
             "target_lane": self.target_lane, "present": self.present, "is_learned": self.is_learned,
             "car_target": self.car_target, "policy": self.policy, "car_fresh": self._car_fresh,
-            "ds": ds, "dk": dk}
+            "crash_kind": self.crash_kind, "closing_speed": self.closing_speed, "ds": ds, "dk": dk}
         # on CPU the step's many small operations run on numpy views of the same memory
         self._on_cpu = dev.type == "cpu"
         self._arrays = {k: v.numpy() for k, v in self._tensors.items()} if self._on_cpu else self._tensors
@@ -250,6 +259,8 @@ class BatchedLaneChange:
             b[name][at] = value
         b["steps"][at] = 0
         b["crashed"][at] = False
+        b["crash_kind"][at] = NO_CRASH
+        b["closing_speed"][at] = 0.0
         b["car_fresh"][at] = True
 
     # ----------------------------------------------------------------------------- step
@@ -282,17 +293,20 @@ class BatchedLaneChange:
         physics.apply_actions(b["state"], b["ds"][acts], b["dk"][acts], (low, high), cfg.curvature_limit)
         physics.move(b["state"], cfg.dt)
         b["steps"] += 1
+        before = b["crashed"].copy() if self._on_cpu else b["crashed"].clone()
         hit = self._agent_collides()
         b["crashed"] |= hit.numpy() if self._on_cpu else hit
         lo, hi = physics.lateral_extent(b["state"][:, 0], cfg.vehicle_length, cfg.vehicle_width)
         b["crashed"] |= (lo < -0.5 * w) | (hi > (cfg.lanes_count - 0.5) * w)
         b["reached"] |= physics.inside_target(lo, hi, b["target_lane"], w)
+        self._classify_crashes(b["crashed"] & ~before)
         self._head = (self._head + 1) % self.history
         comps, on_target = self._components(b)
         reward = physics.weighted_sum(comps, self._weights)
         crashed, reached = b["crashed"], b["reached"]
         parts = (reward, comps, crashed, b["steps"] >= cfg.duration, crashed, on_target, reached)
         out = StepOut(*(torch.from_numpy(x.copy()) if self._on_cpu else x.clone() for x in parts))
+        out.crash_kind, out.closing_speed = self.crash_kind.clone(), self.closing_speed.clone()
         views = self._agent_views(b["state"], b["present"], b["target_lane"], b["is_learned"])
         done: list[int] = []
         if auto_reset:
@@ -313,6 +327,20 @@ class BatchedLaneChange:
         self._first_frames(idx, self._scratch[self._head, : len(done)])
         return out
 
+    def _classify_crashes(self, new: Any) -> None:
+        """Kind and closing speed of the crashes of envs ``new`` (bool ``[N]``), this step's
+        state (:func:`memrl.envs.crash.classify`, as the reference env's ``info``)."""
+        ids = np.flatnonzero(new) if self._on_cpu else torch.nonzero(new).flatten().cpu().numpy()
+        if len(ids) == 0:
+            return
+        cfg = self.cfg
+        at = torch.as_tensor(ids, device=self.device)
+        state, present = self.state[at].cpu().numpy(), self.present[at].cpu().numpy()
+        for row, i in enumerate(ids.tolist()):
+            kind, closing = classify_rows(state[row], present[row], cfg.lane_width, cfg.lanes_count,
+                                          cfg.vehicle_length, cfg.vehicle_width)
+            self.crash_kind[i], self.closing_speed[i] = kind, closing
+
     def state_dict(self) -> dict[str, Any]:
         """Everything that determines the engine's future (copies; tensors on its device): car
         states, flags, targets, policies, steps, the frame ring, learned cars' frame stacks and
@@ -327,13 +355,15 @@ class BatchedLaneChange:
     def info(self) -> dict[str, torch.Tensor]:
         """The reference env's ``info`` of the current state, per env: speed [m/s], curvature
         [rad/m], lane, target_lane, rewards (``[N, 5]`` components), collided, on_target_lane,
-        reached_target."""
+        reached_target, crash_kind, closing_speed (of the episode's crash, as set at its step;
+        not part of :meth:`state_dict`)."""
         comps, on_target = self._components(self._tensors)
         agent, cfg = self.state[:, 0], self.cfg
         return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE],
                 "lane": physics.lane(agent, cfg.lane_width, cfg.lanes_count).long(),
                 "target_lane": self.target_lane, "rewards": comps, "collided": self.crashed.clone(),
-                "on_target_lane": on_target, "reached_target": self.reached.clone()}
+                "on_target_lane": on_target, "reached_target": self.reached.clone(),
+                "crash_kind": self.crash_kind.clone(), "closing_speed": self.closing_speed.clone()}
 
     def _components(self, b: dict[str, Any]) -> tuple[Any, Any]:
         """Reward components and on-target flags of the arrays ``b`` (numpy or tensors)."""

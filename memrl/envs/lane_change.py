@@ -18,6 +18,7 @@ from highway_env.road.road import Road, RoadNetwork
 
 from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
 from memrl.envs.controllers import CarController, Opponents, make_opponents
+from memrl.envs.crash import NO_CRASH, classify
 from memrl.envs.render import BEVRenderer, View, car_corners
 from memrl.envs.scene import sample_scene
 from memrl.envs.stride import history_length, select_frames
@@ -84,7 +85,10 @@ class LaneChangeEnv(AbstractEnv):
     by ``config['reward'][name]`` (Table II). Terminated on collision; truncated after
     ``duration`` steps. ``info`` holds the components (``rewards``), ``collided``,
     ``on_target_lane`` and ``reached_target`` (all four corners of the agent inside the
-    target lane at some step of the episode so far).
+    target lane at some step of the episode so far), and of a crash its kind and closing
+    speed (``crash_kind``: code of :data:`memrl.envs.crash.CRASH_KINDS`, 0 without a crash;
+    ``closing_speed`` [m/s], 0 without one (not NaN: gymnasium's checker compares infos);
+    :func:`memrl.envs.crash.classify`).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -303,7 +307,19 @@ class LaneChangeEnv(AbstractEnv):
             "collided": np.bool_(car.crashed),
             "on_target_lane": np.bool_(lane == self.target_lane),
             "reached_target": np.bool_(self.reached_target),
+            **self._crash_info(),
         }
+
+    def _crash_info(self) -> dict:
+        """``crash_kind`` and ``closing_speed`` of the current state (see :mod:`memrl.envs.crash`)."""
+        kind, closing = NO_CRASH, 0.0
+        if self.vehicle.crashed:
+            rows = [[c.position[0], c.position[1], c.heading, c.speed, c.curvature]
+                    for c in (self.vehicle, *self.others)]
+            cfg = self.cfg
+            kind, closing = classify(np.array(rows[0]), np.array(rows[1:]).reshape(-1, 5), cfg.lane_width,
+                                     cfg.lanes_count, cfg.vehicle_length, cfg.vehicle_width)
+        return {"crash_kind": np.int64(kind), "closing_speed": np.float64(closing)}
 
     # ------------------------------------------------------------------------- rendering
     @property

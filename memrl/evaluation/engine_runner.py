@@ -17,11 +17,12 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from memrl.envs.batched import BatchedLaneChange, resolve_device
+from memrl.envs.batched import BatchedLaneChange, StepOut, resolve_device
 from memrl.envs.config import EnvConfigError, env_config_dict, validate_env_config
+from memrl.envs.crash import kind_name
 from memrl.envs.vehicles import IDLE
 from memrl.evaluation.jobs import Actor, Job, JobResult, torch_threads
-from memrl.evaluation.protocol import EpisodeRecord
+from memrl.evaluation.protocol import EpisodeRecord, closing_or_none
 
 __all__ = ["engine_can_run", "resolve_device", "run_jobs_on_engine", "torch_threads"]
 
@@ -78,14 +79,18 @@ class _Lane:
         self.steps[idx] = 0
         self.active[idx] = True
 
-    def finish(self, ids: list[int], collided: list[bool], reached: list[bool]) -> list[EpisodeRecord]:
-        """The records of the episodes that just ended in envs ``ids``."""
+    def finish(self, ids: list[int], out: StepOut) -> list[EpisodeRecord]:
+        """The records of the episodes that just ended in envs ``ids`` (``out``: the step's)."""
         rets, steps = self.ret.tolist(), self.steps.tolist()
+        collided, reached = out.collided[ids].tolist(), out.reached_target[ids].tolist()
+        assert out.crash_kind is not None and out.closing_speed is not None
+        kinds, closing = out.crash_kind[ids].tolist(), out.closing_speed[ids].tolist()
         return [EpisodeRecord(
             initial_lane=self.job.initial_lane, episode=self.index[i], seed=self.seed[i], steps=steps[i],
             episode_return=rets[i], collided=c, reached_target=r, duration=self.engine.cfg.duration,
-            target_lane=self.target_lane[i], start_lane=self.start_lane[i], vehicles=self.vehicles[i])
-            for i, c, r in zip(ids, collided, reached, strict=True)]
+            target_lane=self.target_lane[i], start_lane=self.start_lane[i], vehicles=self.vehicles[i],
+            crash_kind=kind_name(k), closing_speed=closing_or_none(k, v))
+            for i, c, r, k, v in zip(ids, collided, reached, kinds, closing, strict=True)]
 
 
 def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None = None,
@@ -123,7 +128,7 @@ def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None =
                 done = (out.terminated | out.truncated) & lane.active
                 ids = torch.nonzero(done).flatten().tolist()
                 if ids:
-                    records = lane.finish(ids, out.collided[ids].tolist(), out.reached_target[ids].tolist())
+                    records = lane.finish(ids, out)
                     result.records += records
                     lane.fill(ids)
                     if on_done is not None:

@@ -114,6 +114,11 @@ def protocol_id(protocol: ProtocolConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
+def closing_or_none(kind: int, value: float) -> float | None:
+    """A closing speed as an :class:`EpisodeRecord` holds it: None without a crash (kind 0)."""
+    return None if int(kind) == 0 else float(value)
+
+
 @dataclass
 class EpisodeRecord:
     """Outcome of one evaluation episode (one row of the per-episode CSV)."""
@@ -138,6 +143,11 @@ class EpisodeRecord:
     start_lane: int = -1
     vehicles: int = -1
     """Other cars in the scene."""
+    crash_kind: str = ""
+    """Of a collision: ``ahead``, ``behind``, ``side`` or ``road_edge`` (:mod:`memrl.envs.crash`);
+    ``""`` without one."""
+    closing_speed: float | None = None
+    """Of a collision: closing speed [m/s] (:mod:`memrl.envs.crash`); None without one."""
 
     @property
     def survived(self) -> bool:
@@ -161,12 +171,13 @@ class EpisodeRecord:
                       started_on_target=int(self.started_on_target))
         for key in ("collided", "reached_target"):
             values[key] = int(values[key])
+        values["closing_speed"] = "" if self.closing_speed is None else round(self.closing_speed, 4)
         return values
 
 
 CSV_FIELDS = ("initial_lane", "episode", "seed", "steps", "return", "collided", "reached_target",
               "survived", "goal", "started_on_target", "duration", "target_lane", "start_lane",
-              "vehicles")
+              "vehicles", "crash_kind", "closing_speed")
 """Columns of the per-episode CSV (``episodes.csv`` in an evaluation folder)."""
 
 
@@ -177,7 +188,9 @@ def record_from_row(row: Mapping[str, Any]) -> EpisodeRecord:
         steps=int(row["steps"]), episode_return=float(row["return"]),
         collided=bool(int(row["collided"])), reached_target=bool(int(row["reached_target"])),
         duration=int(row["duration"]), target_lane=int(row["target_lane"]),
-        start_lane=int(row["start_lane"]), vehicles=int(row["vehicles"]))
+        start_lane=int(row["start_lane"]), vehicles=int(row["vehicles"]),
+        crash_kind=str(row.get("crash_kind") or ""),  # CSVs written before the crash columns: none
+        closing_speed=float(row["closing_speed"]) if row.get("closing_speed") not in (None, "") else None)
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""An evaluation folder: ``eval.json`` (protocol, seeds, scores, who) and ``episodes.csv``."""
+"""An evaluation folder: ``eval.json`` (protocol, seeds, scores, crashes, who) and ``episodes.csv``."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from memrl.evaluation.crash_counts import by_lane as crashes_by_lane
 from memrl.evaluation.protocol import (
     CSV_FIELDS,
     EpisodeRecord,
@@ -70,7 +71,8 @@ def write_result(out_dir: Path, name: str, records: list[EpisodeRecord], protoco
         "scores": {lane: asdict(s) for lane, s in result.scores.items()},
         "protocol": result.protocol, "protocol_id": result.protocol_id,
         "episodes_done": len(records), "stopped_early": stopped_early,
-        "wall_s": round(wall_s, 3), "meta": result.meta, "env": result.env, **dict(extra or {}),
+        "wall_s": round(wall_s, 3), "meta": result.meta, "env": result.env,
+        "crashes": crashes_by_lane(records), **dict(extra or {}),
         "seeds": result.seeds,
     }
     tmp = out_dir / (EVAL_JSON + ".tmp")

@@ -28,10 +28,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from memrl.envs.crash import kind_name
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_jobs_on_engine
 from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
-from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
+from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord, closing_or_none
 from memrl.modules.policy import FrameStack, StopRecording
 from memrl.workers import die_with_parent
 
@@ -117,7 +118,9 @@ def _step(env: LaneChangeEnv, slot: _Slot, action: int, job: Job, hook: StepHook
             initial_lane=job.initial_lane, episode=slot.index, seed=slot.seed, steps=env.steps,
             episode_return=slot.ret, collided=bool(info["collided"]),
             reached_target=bool(info["reached_target"]), duration=env.cfg.duration,
-            target_lane=int(env.target_lane), start_lane=slot.start_lane, vehicles=slot.vehicles)
+            target_lane=int(env.target_lane), start_lane=slot.start_lane, vehicles=slot.vehicles,
+            crash_kind=kind_name(int(info["crash_kind"])),
+            closing_speed=closing_or_none(int(info["crash_kind"]), float(info["closing_speed"])))
     if hook is not None:
         hook(env, slot.stack.frames, action, record)  # type: ignore[arg-type]
     return record

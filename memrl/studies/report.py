@@ -21,6 +21,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from memrl.evaluation import stats, tables
+from memrl.evaluation.crashes import crash_section
 from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.results import EvalResult
 from memrl.modes import MODES, by_label
@@ -410,6 +411,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
               *stage1_end_section([Path(str(r.meta["run"])) for r in inputs.runs if r.meta.get("run")]),
               *both_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *traffic_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
+              *crash_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *training_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
     lines += ["## Files", "",
