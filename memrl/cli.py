@@ -13,6 +13,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl import signals
 from memrl.errors import ONE_LINE_ENV, USAGE_EXIT, is_user_error, one_line
 
 log = logging.getLogger(__name__)
@@ -98,12 +99,16 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
         share_group_listing()
     # Hand-written: Hydra prints its own multi-line trace for every error; with
     # HYDRA_FULL_ERROR it raises instead, and the user errors get one line here.
+    signals.install()  # SIGINT / SIGTERM: a clean stop with the resume command (memrl.signals)
     saved = {k: os.environ.get(k) for k in ("HYDRA_FULL_ERROR", ONE_LINE_ENV)}
     os.environ["HYDRA_FULL_ERROR"] = "1"
     if one_line_errors:
         os.environ[ONE_LINE_ENV] = "1"
     try:
         return main()
+    except signals.Interrupted as stop:  # before the task started (composition, checks)
+        print(f"interrupted by {stop.name}", file=sys.stderr)
+        sys.exit(stop.exit_status)
     except Exception as err:
         if not (one_line_errors and is_user_error(err)):
             raise
@@ -143,6 +148,9 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     out = Path(hydra_cfg.runtime.output_dir)
     try:
         return task(cfg)
+    except signals.Interrupted as stop:
+        print(stopped_line(stop, cfg, out, list(hydra_cfg.overrides.task)), file=sys.stderr)
+        sys.exit(stop.exit_status)
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             remove_if_bare(out)
@@ -156,3 +164,30 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
         summary = one_line(err) if is_user_error(err) else f"{type(err).__name__}: {err}"
         log.error("job failed: %s; traceback in %s", summary, out / ERROR_FILE)
         return None
+
+
+def stopped_line(stop: signals.Interrupted, cfg: DictConfig, out: Path, overrides: list[str]) -> str:
+    """The one line printed when a signal stopped a command: what was kept and the exact
+    command that continues it (train: ``resume=<run folder>``; the others: the same command,
+    which reuses what is finished). A new training run stopped before its first checkpoint has
+    nothing to resume: its folder is removed."""
+    import shlex
+
+    task = str(cfg.get("task_name", "train"))
+    if task == "train":
+        from memrl.dqn import checkpoint as ckpt
+
+        try:
+            ckpt.find(out)
+        except ckpt.CheckpointError:
+            if not cfg.get("resume"):
+                shutil.rmtree(out, ignore_errors=True)
+            again = shlex.join(["python", "-m", "memrl.train", *overrides])
+            return f"interrupted by {stop.name} before the first checkpoint: nothing to resume; " \
+                   f"start again with: {again}"
+        args = [o for o in overrides if o.split("=", 1)[0].lstrip("+") != "resume"]
+        command = shlex.join(["python", "-m", "memrl.train", *args, f"resume={out}"])
+        return f"interrupted by {stop.name}: checkpoint kept in {out / 'checkpoints'}; " \
+               f"resume with: {command}"
+    command = shlex.join(["python", "-m", f"memrl.{task}", *overrides])
+    return f"interrupted by {stop.name}: finished work kept; continue with: {command}"

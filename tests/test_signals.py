@@ -1,0 +1,89 @@
+"""SIGINT and SIGTERM stop a command cleanly: a resumable checkpoint, one line with the exact
+resume command, exit status 128 + signal; the command as printed finishes equal to an
+uninterrupted run."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.helpers import csv_rows
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ["+experiment=smoke", "total_frames=700", "progress=false"]
+
+
+def environ(root: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    env.update(MEMRL_ROOT=str(root), PYTHONPATH=str(ROOT))
+    return env
+
+
+def start(args: list[str], root: Path) -> subprocess.Popen:
+    def default_sigint() -> None:  # a background job of a shell would ignore SIGINT
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    return subprocess.Popen([sys.executable, "-m", *args], cwd=ROOT, env=environ(root),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=default_sigint)
+
+
+def run_folder(root: Path) -> Path:
+    runs = list((root / "outputs" / "train" / "runs").glob("*"))
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+def wait_for_episodes(root: Path, proc: subprocess.Popen, n: int, timeout: float = 240) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        assert proc.poll() is None, proc.communicate()
+        found = list((root / "outputs" / "train" / "runs").glob("*/episodes.csv"))
+        if found and len(found[0].read_text().splitlines()) > n:
+            return
+        time.sleep(0.2)
+    raise AssertionError("no episodes")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("full")
+    proc = subprocess.run([sys.executable, "-m", "memrl.train", *SMOKE], cwd=ROOT,
+                          env=environ(root), capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    return run_folder(root)
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_signal_during_training_keeps_a_checkpoint_and_prints_the_resume_command(
+        tmp_path, uninterrupted, sig, status):
+    proc = start(["memrl.train", *SMOKE], tmp_path)
+    wait_for_episodes(tmp_path, proc, 5)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == status, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "Traceback" not in err and "leaked semaphore" not in err, err
+    last = lines[-1]
+    assert last.startswith(f"interrupted by {signal.Signals(sig).name}: ") and "resume with: " in last
+    run = run_folder(tmp_path)
+    assert (run / "checkpoints" / "last" / "COMPLETE").is_file()
+    assert not list(run.rglob("*.tmp")) and not (run / "checkpoints" / "final.pt").exists()
+
+    command = shlex.split(last.split("resume with: ", 1)[1])
+    assert command[:3] == ["python", "-m", "memrl.train"] and command[-1] == f"resume={run}"
+    again = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, env=environ(tmp_path),
+                           capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr
+    a = torch.load(uninterrupted / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    b = torch.load(run / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert csv_rows(run / "episodes.csv") == csv_rows(uninterrupted / "episodes.csv")
