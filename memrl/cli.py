@@ -132,6 +132,18 @@ def remove_if_bare(run_dir: Path) -> bool:
     return True
 
 
+def undo_hydra_files(out: Path, subdir: str | None, log_file: Path, log_size: int | None) -> None:
+    """Take back what Hydra wrote for a refused start into a folder that existed before it (a
+    resumed run, a study): its own ``.hydra/<time>/`` record, and the log lines of this call."""
+    if subdir and Path(subdir).parts[:1] == (".hydra",) and len(Path(subdir).parts) > 1:
+        shutil.rmtree(out / subdir, ignore_errors=True)
+        if (out / ".hydra").is_dir() and not any((out / ".hydra").iterdir()):
+            (out / ".hydra").rmdir()
+    if log_size is not None and log_file.is_file():
+        with log_file.open("r+b") as f:
+            f.truncate(log_size)
+
+
 def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     """The body of every ``@hydra.main``: call the typed function ``task`` on ``cfg``.
 
@@ -146,6 +158,8 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
 
     hydra_cfg = HydraConfig.get()
     out = Path(hydra_cfg.runtime.output_dir)
+    log_file = out / f"{cfg.get('task_name') or hydra_cfg.job.name}.log"
+    log_size = log_file.stat().st_size if log_file.is_file() else None
     try:
         return task(cfg)
     except signals.Interrupted as stop:
@@ -153,6 +167,8 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
         sys.exit(stop.exit_status)
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
+            if is_user_error(err):
+                undo_hydra_files(out, hydra_cfg.output_subdir, log_file, log_size)
             remove_if_bare(out)
             if is_user_error(err) and os.environ.get(ONE_LINE_ENV):
                 # here, not in run_hydra: Hydra would first print a line of its own

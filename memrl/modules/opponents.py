@@ -20,13 +20,14 @@ from torch.func import functional_call, stack_module_state
 
 from memrl.envs.controllers import CarController
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
+from memrl.errors import UserError
 from memrl.modules.qnet import QNetwork
 
 if TYPE_CHECKING:
     from memrl.envs.lane_change import LaneChangeEnv
 
 
-class OpponentPoolError(ValueError):
+class OpponentPoolError(UserError, ValueError):
     """A pool entry matches no checkpoint, or a checkpoint cannot drive a car."""
 
 
