@@ -160,3 +160,13 @@ def test_report_of_a_folder_without_evaluation_names_it(tmp_path):
     refused(proc, str(folder))
     assert not (tmp_path / "outputs" / "report" / "runs").exists() or \
         list((tmp_path / "outputs" / "report" / "runs").iterdir()) == []
+
+
+def test_a_multirun_checks_every_job_before_launching_any(tmp_path):
+    proc = cli(["memrl.train", "-m", "seed=0,1", "agent.lr=0", *TINY], tmp_path)
+    line = refused(proc, "'agent.lr'")
+    assert "job 0 [seed=0 agent.lr=0" in line
+    proc = cli(["memrl.train", "-m", "seed=0,1", "total_episodes=1,0", *TINY[:2], *TINY[3:]], tmp_path)
+    line = refused(proc, "'total_episodes'")
+    assert "job 1 [seed=0 total_episodes=0" in line  # the first bad job, by its overrides
+    assert not (tmp_path / "outputs").exists()
