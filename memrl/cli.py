@@ -206,4 +206,7 @@ def stopped_line(stop: signals.Interrupted, cfg: DictConfig, out: Path, override
         return f"interrupted by {stop.name}: checkpoint kept in {out / 'checkpoints'}; " \
                f"resume with: {command}"
     command = shlex.join(["python", "-m", f"memrl.{task}", *overrides])
-    return f"interrupted by {stop.name}: finished work kept; continue with: {command}"
+    if task == "study":  # the same command skips finished runs and resumes the others
+        return f"interrupted by {stop.name}: finished runs and checkpoints kept; continue with: {command}"
+    remove_if_bare(out)  # nothing finished: no empty output folder
+    return f"interrupted by {stop.name}: nothing written; run again with: {command}"

@@ -87,3 +87,48 @@ def test_signal_during_training_keeps_a_checkpoint_and_prints_the_resume_command
     b = torch.load(run / "checkpoints" / "final.pt", weights_only=False)["qnet"]
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert csv_rows(run / "episodes.csv") == csv_rows(uninterrupted / "episodes.csv")
+
+
+def test_signal_during_evaluation_stops_its_workers_and_leaves_no_folder(tmp_path):
+    proc = start(["memrl.evaluate", "policy=scripted", "protocol.episodes=400", "workers=2",
+                  "progress=false"], tmp_path)
+    time.sleep(12)  # the workers are started and driving
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "Traceback" not in err and "leaked semaphore" not in err, err
+    assert lines[-1].startswith("interrupted by SIGINT: nothing written; run again with: python -m "
+                                "memrl.evaluate policy=scripted"), err
+    runs = tmp_path / "outputs" / "evaluate" / "runs"
+    assert not runs.exists() or list(runs.iterdir()) == []
+
+
+def test_signal_during_a_study_keeps_its_runs_and_the_printed_command_finishes_it(tmp_path):
+    from tests.test_study import study_overrides
+
+    train = ["+experiment=smoke", "total_frames=900", "agent.warmup_frames=16", "buffer.capacity=400",
+             "env.duration=30", "logger=none", "checkpoint_every=2", "eval.every=0"]
+    folder = tmp_path / "s"
+    args = [*study_overrides(folder, train, modes="[Default]", report=("rollouts.rows=[]",)),
+            "study.baselines=[]", "study.jobs=1"]
+    proc = start(["memrl.study", *args], tmp_path)
+    run = folder / "runs" / "Default_constant_s0"
+    end = time.monotonic() + 240
+    while not ((run / "episodes.csv").is_file() and len((run / "episodes.csv").read_text().splitlines()) > 8):
+        assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "leaked semaphore" not in err, err
+    last = [ln for ln in err.splitlines() if ln.strip()][-1]
+    assert last.startswith("interrupted by SIGTERM: ") and "continue with: " in last, err
+    assert (run / "checkpoints" / "last" / "COMPLETE").is_file() and not (run / "summary.json").exists()
+    assert not list(folder.rglob("*.tmp"))
+    command = shlex.split(last.split("continue with: ", 1)[1])
+    again = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, env=environ(tmp_path),
+                           capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert (run / "summary.json").is_file() and (folder / "report.md").is_file()

@@ -247,6 +247,9 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
     del state["wall_s"]  # and the record of the run's training time
     torch.save(state, state_file)
     (state_file.parent / ckpt.MANIFEST).unlink()  # such checkpoints predate the manifest too
+    with pytest.raises(ckpt.CheckpointError, match=ckpt.MANIFEST):  # unverifiable: refused
+        train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}", *legacy]))
+    ckpt.write_manifest(state_file.parent)  # the way the refusal names, for files known good
     with pytest.raises(ckpt.CheckpointError, match="agent.overlap") as err:
         train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
     assert "agent.precision: 'float32' (checkpoint) vs 'auto' (now)" in str(err.value)
