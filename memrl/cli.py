@@ -132,16 +132,18 @@ def remove_if_bare(run_dir: Path) -> bool:
     return True
 
 
-def undo_hydra_files(out: Path, subdir: str | None, log_file: Path, log_size: int | None) -> None:
+def undo_hydra_files(out: Path, subdir: str | None, log_file: Path, log_stat: os.stat_result | None,
+                     ) -> None:
     """Take back what Hydra wrote for a refused start into a folder that existed before it (a
     resumed run, a study): its own ``.hydra/<time>/`` record, and the log lines of this call."""
     if subdir and Path(subdir).parts[:1] == (".hydra",) and len(Path(subdir).parts) > 1:
         shutil.rmtree(out / subdir, ignore_errors=True)
         if (out / ".hydra").is_dir() and not any((out / ".hydra").iterdir()):
             (out / ".hydra").rmdir()
-    if log_size is not None and log_file.is_file():
+    if log_stat is not None and log_file.is_file():
         with log_file.open("r+b") as f:
-            f.truncate(log_size)
+            f.truncate(log_stat.st_size)
+        os.utime(log_file, ns=(log_stat.st_atime_ns, log_stat.st_mtime_ns))
 
 
 def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
@@ -159,7 +161,7 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     hydra_cfg = HydraConfig.get()
     out = Path(hydra_cfg.runtime.output_dir)
     log_file = out / f"{cfg.get('task_name') or hydra_cfg.job.name}.log"
-    log_size = log_file.stat().st_size if log_file.is_file() else None
+    log_stat = log_file.stat() if log_file.is_file() else None
     try:
         return task(cfg)
     except signals.Interrupted as stop:
@@ -168,7 +170,7 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             if is_user_error(err):
-                undo_hydra_files(out, hydra_cfg.output_subdir, log_file, log_size)
+                undo_hydra_files(out, hydra_cfg.output_subdir, log_file, log_stat)
             remove_if_bare(out)
             if is_user_error(err) and os.environ.get(ONE_LINE_ENV):
                 # here, not in run_hydra: Hydra would first print a line of its own

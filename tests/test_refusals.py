@@ -170,3 +170,16 @@ def test_a_multirun_checks_every_job_before_launching_any(tmp_path):
     line = refused(proc, "'total_episodes'")
     assert "job 1 [seed=0 total_episodes=0" in line  # the first bad job, by its overrides
     assert not (tmp_path / "outputs").exists()
+
+
+def test_a_study_called_with_changed_train_overrides_writes_nothing(tmp_path, compose_cfg):
+    from memrl.study import check_record
+    from tests.test_study import TRAIN, study_overrides
+
+    folder = tmp_path / "s"
+    check_record(folder, compose_cfg("study", study_overrides(folder)))
+    (folder / "study.log").write_text("earlier lines\n")
+    before = snapshot(folder)
+    proc = cli(["memrl.study", *study_overrides(folder, [*TRAIN, "agent.lr=0.001"])], tmp_path)
+    refused(proc, "study.train_overrides")
+    assert snapshot(folder) == before and (folder / "study.log").read_text() == "earlier lines\n"
