@@ -65,12 +65,16 @@ def uninstall() -> None:
 
 @contextmanager
 def deferred() -> Iterator[None]:
-    """Within this block a signal only asks for a stop (:func:`stop_requested`)."""
+    """Within this block a signal only asks for a stop (:func:`stop_requested`). A stop asked
+    for but not acted on (the work ended first) is raised on leaving the block, so that the
+    process still stops."""
     _state["defer"] += 1
     try:
         yield
     finally:
         _state["defer"] -= 1
+    if _state["defer"] == 0 and _state["pending"] is not None:
+        stop()
 
 
 def stop_requested() -> int | None:

@@ -132,3 +132,20 @@ def test_signal_during_a_study_keeps_its_runs_and_the_printed_command_finishes_i
                            capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
     assert (run / "summary.json").is_file() and (folder / "report.md").is_file()
+
+
+def test_a_deferred_stop_waits_for_the_check_and_a_second_signal_stops_at_once():
+    from memrl import signals
+
+    signals.install()
+    try:
+        with pytest.raises(signals.Interrupted) as info:
+            with signals.deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                assert signals.stop_requested() == signal.SIGTERM  # only asked, not raised
+                with pytest.raises(signals.Interrupted):  # a second signal: at once
+                    os.kill(os.getpid(), signal.SIGINT)
+        assert info.value.exit_status == 143  # the stop not acted on is raised on leaving
+        assert signals.stop_requested() is None
+    finally:
+        signals.uninstall()
