@@ -65,7 +65,21 @@ def uninterrupted(tmp_path_factory) -> Path:
 @pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_signal_during_training_keeps_a_checkpoint_and_prints_the_resume_command(
         tmp_path, uninterrupted, sig, status):
-    proc = start(["memrl.train", *SMOKE], tmp_path)
+    stop_and_resume(tmp_path, SMOKE, uninterrupted, sig, status)
+
+
+def test_signal_during_batched_training_stops_mid_episode_and_resumes_exactly(tmp_path):
+    args = [*SMOKE, "env.num_envs=4"]
+    full = tmp_path / "full"
+    proc = subprocess.run([sys.executable, "-m", "memrl.train", *args], cwd=ROOT,
+                          env=environ(full), capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    stop_and_resume(tmp_path / "cut", args, run_folder(full), signal.SIGTERM, 143)
+
+
+def stop_and_resume(tmp_path: Path, args: list[str], uninterrupted: Path, sig: int, status: int) -> None:
+    tmp_path.mkdir(exist_ok=True)
+    proc = start(["memrl.train", *args], tmp_path)
     wait_for_episodes(tmp_path, proc, 5)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
