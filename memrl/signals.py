@@ -10,6 +10,7 @@ resume command and exit status 128 + signal number (130 for SIGINT, 143 for SIGT
 
 from __future__ import annotations
 
+import os
 import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -42,11 +43,16 @@ def _handler(signum: int, frame: Any) -> None:
     if _state["defer"] > 0 and _state["pending"] is None:
         _state["pending"] = signum
         return
+    if _state.get("quiet"):  # a pool worker outside a training loop: end without a traceback
+        os._exit(128 + signum)
     raise Interrupted(signum)
 
 
-def install() -> None:
-    """Handle SIGINT and SIGTERM as above (main thread only; a no-op elsewhere)."""
+def install(worker: bool = False) -> None:
+    """Handle SIGINT and SIGTERM as above (main thread only; a no-op elsewhere). In a pool
+    worker (``worker=True``) a signal outside :func:`deferred` ends the process at once and
+    quietly: the parent stops the pool, and a training run resumes from its last checkpoint."""
+    _state["quiet"] = worker
     try:
         for sig in SIGNALS:
             signal.signal(sig, _handler)

@@ -46,7 +46,7 @@ def worker_start() -> None:
     from memrl import signals
 
     die_with_parent()
-    signals.install()
+    signals.install(worker=True)
 
 
 @contextmanager

@@ -103,10 +103,11 @@ def stop_and_resume(tmp_path: Path, args: list[str], uninterrupted: Path, sig: i
     assert csv_rows(run / "episodes.csv") == csv_rows(uninterrupted / "episodes.csv")
 
 
-def test_signal_during_evaluation_stops_its_workers_and_leaves_no_folder(tmp_path):
+@pytest.mark.parametrize("after_s", [4, 12], ids=["workers starting", "workers driving"])
+def test_signal_during_evaluation_stops_its_workers_and_leaves_no_folder(tmp_path, after_s):
     proc = start(["memrl.evaluate", "policy=scripted", "protocol.episodes=400", "workers=2",
                   "progress=false"], tmp_path)
-    time.sleep(12)  # the workers are started and driving
+    time.sleep(after_s)
     assert proc.poll() is None, proc.communicate()
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=300)
