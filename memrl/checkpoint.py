@@ -7,12 +7,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from memrl.data.demos import env_config_hash
 from memrl.dqn.checkpoint import CheckpointError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
+from memrl.errors import load_run_config
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
 from memrl.modules.qnet import TABLE1, arch_of, build_qnet, input_frames
 
@@ -113,6 +114,7 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     ``config.yaml`` is there to tell, and, with ``network`` (a ``network`` config node), of
     that architecture."""
     file = stage1_file(path)
+    check_stage1(file)
     if network is not None:
         try:
             stored = stored_arch(torch.load(file, weights_only=False, map_location="cpu"))
@@ -125,7 +127,7 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
                                   f"{describe(ours)} (key network)")
     run_cfg = file.parent.parent / "config.yaml"
     if run_cfg.is_file():
-        loaded = OmegaConf.load(run_cfg)
+        loaded = load_run_config(run_cfg)
         theirs = loaded.get("env") if isinstance(loaded, DictConfig) else None
         if theirs is not None and env_config_hash(theirs) != env_config_hash(env_cfg):
             raise CheckpointError(f"{file}: trained in another env config than this run's "
@@ -192,3 +194,16 @@ def load_policy(path: str, epsilon: float = 0.0) -> DrivingPolicy:
     """A :class:`GreedyQPolicy` from a run folder or ``final.pt`` (used by deploy and evaluate)."""
     net, _ = load_qnet(path)
     return GreedyQPolicy(net, epsilon)
+
+
+def check_stage1(file: Path) -> Path:
+    """Refuse a ``stage1.pt`` that is missing, truncated or not a stage-1 record, by name."""
+    if not file.is_file():
+        raise CheckpointError(f"{file}: missing (mode B's stage-1 weights; stage 2 starts from them)")
+    try:
+        state = torch.load(file, weights_only=False, map_location="cpu")
+    except Exception as err:  # torch raises several types for a truncated or foreign file
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"{file}: unreadable stage-1 weights ({first})") from None
+    if not isinstance(state, dict) or "loss_module" not in state:
+        raise CheckpointError(f"{file}: not a stage-1 record (no 'loss_module' weights)")

@@ -13,6 +13,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl import signals
 from memrl.errors import ONE_LINE_ENV, USAGE_EXIT, is_user_error, one_line
 
 log = logging.getLogger(__name__)
@@ -98,12 +99,16 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
         share_group_listing()
     # Hand-written: Hydra prints its own multi-line trace for every error; with
     # HYDRA_FULL_ERROR it raises instead, and the user errors get one line here.
+    signals.install()  # SIGINT / SIGTERM: a clean stop with the resume command (memrl.signals)
     saved = {k: os.environ.get(k) for k in ("HYDRA_FULL_ERROR", ONE_LINE_ENV)}
     os.environ["HYDRA_FULL_ERROR"] = "1"
     if one_line_errors:
         os.environ[ONE_LINE_ENV] = "1"
     try:
         return main()
+    except signals.Interrupted as stop:  # before the task started (composition, checks)
+        print(f"interrupted by {stop.name}", file=sys.stderr)
+        sys.exit(stop.exit_status)
     except Exception as err:
         if not (one_line_errors and is_user_error(err)):
             raise
@@ -127,6 +132,20 @@ def remove_if_bare(run_dir: Path) -> bool:
     return True
 
 
+def undo_hydra_files(out: Path, subdir: str | None, log_file: Path, log_stat: os.stat_result | None,
+                     ) -> None:
+    """Take back what Hydra wrote for a refused start into a folder that existed before it (a
+    resumed run, a study): its own ``.hydra/<time>/`` record, and the log lines of this call."""
+    if subdir and Path(subdir).parts[:1] == (".hydra",) and len(Path(subdir).parts) > 1:
+        shutil.rmtree(out / subdir, ignore_errors=True)
+        if (out / ".hydra").is_dir() and not any((out / ".hydra").iterdir()):
+            (out / ".hydra").rmdir()
+    if log_stat is not None and log_file.is_file():
+        with log_file.open("r+b") as f:
+            f.truncate(log_stat.st_size)
+        os.utime(log_file, ns=(log_stat.st_atime_ns, log_stat.st_mtime_ns))
+
+
 def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     """The body of every ``@hydra.main``: call the typed function ``task`` on ``cfg``.
 
@@ -141,10 +160,17 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
 
     hydra_cfg = HydraConfig.get()
     out = Path(hydra_cfg.runtime.output_dir)
+    log_file = out / f"{cfg.get('task_name') or hydra_cfg.job.name}.log"
+    log_stat = log_file.stat() if log_file.is_file() else None
     try:
         return task(cfg)
+    except signals.Interrupted as stop:
+        print(stopped_line(stop, cfg, out, list(hydra_cfg.overrides.task)), file=sys.stderr)
+        sys.exit(stop.exit_status)
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
+            if is_user_error(err):
+                undo_hydra_files(out, hydra_cfg.output_subdir, log_file, log_stat)
             remove_if_bare(out)
             if is_user_error(err) and os.environ.get(ONE_LINE_ENV):
                 # here, not in run_hydra: Hydra would first print a line of its own
@@ -156,3 +182,33 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
         summary = one_line(err) if is_user_error(err) else f"{type(err).__name__}: {err}"
         log.error("job failed: %s; traceback in %s", summary, out / ERROR_FILE)
         return None
+
+
+def stopped_line(stop: signals.Interrupted, cfg: DictConfig, out: Path, overrides: list[str]) -> str:
+    """The one line printed when a signal stopped a command: what was kept and the exact
+    command that continues it (train: ``resume=<run folder>``; the others: the same command,
+    which reuses what is finished). A new training run stopped before its first checkpoint has
+    nothing to resume: its folder is removed."""
+    import shlex
+
+    task = str(cfg.get("task_name", "train"))
+    if task == "train":
+        from memrl.dqn import checkpoint as ckpt
+
+        try:
+            ckpt.find(out)
+        except ckpt.CheckpointError:
+            if not cfg.get("resume"):
+                shutil.rmtree(out, ignore_errors=True)
+            again = shlex.join(["python", "-m", "memrl.train", *overrides])
+            return f"interrupted by {stop.name} before the first checkpoint: nothing to resume; " \
+                   f"start again with: {again}"
+        args = [o for o in overrides if o.split("=", 1)[0].lstrip("+") != "resume"]
+        command = shlex.join(["python", "-m", "memrl.train", *args, f"resume={out}"])
+        return f"interrupted by {stop.name}: checkpoint kept in {out / 'checkpoints'}; " \
+               f"resume with: {command}"
+    command = shlex.join(["python", "-m", f"memrl.{task}", *overrides])
+    if task == "study":  # the same command skips finished runs and resumes the others
+        return f"interrupted by {stop.name}: finished runs and checkpoints kept; continue with: {command}"
+    remove_if_bare(out)  # nothing finished: no empty output folder
+    return f"interrupted by {stop.name}: nothing written; run again with: {command}"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import sys
+from typing import Any
 
 USAGE_EXIT = 2
 """Exit status of a command refused for bad input (as argparse does)."""
@@ -76,4 +77,19 @@ def one_line(err: BaseException) -> str:
 def _first_lines(err: BaseException) -> str:
     lines = [ln.strip() for ln in str(err).splitlines()
              if ln.strip() and not ln.startswith(_NOISE) and not ln.strip().startswith(_NOISE[:4])]
-    return "; ".join(ln.rstrip(".") for ln in lines) or type(err).__name__
+    return "; ".join(ln.rstrip(".:") for ln in lines) or type(err).__name__
+
+
+def load_run_config(path: Any) -> Any:
+    """``OmegaConf.load`` of a run's ``config.yaml``, refusing a garbled file by name (a YAML
+    error, or a document that is not a mapping) instead of a parser traceback."""
+    from omegaconf import DictConfig, OmegaConf
+
+    try:
+        loaded = OmegaConf.load(path)
+    except Exception as err:  # yaml's scanner and parser errors, OmegaConf's own
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise UserError(f"{path}: unreadable run config ({first})") from None
+    if not isinstance(loaded, DictConfig):
+        raise UserError(f"{path}: unreadable run config (not a mapping of keys)")
+    return loaded

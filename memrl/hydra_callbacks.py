@@ -38,19 +38,65 @@ def check_config(config: DictConfig) -> None:
         check_writable(run_dir, "paths.output_root")  # before Hydra makes the run folder
 
 
+def sweep_jobs(config: DictConfig) -> list[list[str]]:
+    """The overrides of every job of a sweep, in the basic sweeper's order (its cartesian
+    product of the ``a=1,2`` sweeps and ``hydra.sweeper.params``)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+    args = [f"{k}={v}" for k, v in params.items()] + list(config.hydra.overrides.task)
+    parsed = OverridesParser.create().parse_overrides(args)
+    return [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+def check_sweep(config: DictConfig) -> None:
+    """Compose and check every job's config before any job starts (or the sweep folder is
+    made); the first bad job is named with its overrides."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    from memrl.errors import UserError
+    from memrl.schemas import CHECKS, check_writable
+
+    check = CHECKS.get(str(OmegaConf.select(config, "hydra.job.config_name")))
+    loader = GlobalHydra.instance().config_loader()
+    for num, job in enumerate(sweep_jobs(config)):
+        if check is None:
+            break
+        job_cfg = loader.load_sweep_config(config, job)
+        try:
+            check(job_cfg)
+        except Exception as err:
+            if not is_user_error(err):
+                raise
+            raise UserError(f"job {num} [{' '.join(job)}]: {one_line(err)}") from None
+    check_writable(str(config.hydra.sweep.dir), "paths.output_root")
+
+
+def _stop(config: DictConfig, err: Exception) -> None:
+    # Hydra turns a callback's exception into a warning and goes on: stop here instead.
+    if is_user_error(err) and os.environ.get(ONE_LINE_ENV) and not config.get("debug"):
+        print(f"error: {one_line(err)}", file=sys.stderr)
+        sys.exit(USAGE_EXIT)
+    traceback.print_exc()
+    sys.exit(USAGE_EXIT if is_user_error(err) else 1)
+
+
 class StartChecks(Callback):
-    """Check a single run's config before its folder exists (Hydra calls this first)."""
+    """Check a single run's config before its folder exists (Hydra calls this first), and
+    every job's config of a sweep before any job is launched."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         try:
             check_config(config)
         except Exception as err:
-            # Hydra turns a callback's exception into a warning and goes on: stop here instead.
-            if is_user_error(err) and os.environ.get(ONE_LINE_ENV) and not config.get("debug"):
-                print(f"error: {one_line(err)}", file=sys.stderr)
-                sys.exit(USAGE_EXIT)
-            traceback.print_exc()
-            sys.exit(USAGE_EXIT if is_user_error(err) else 1)
+            _stop(config, err)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        try:
+            check_sweep(config)
+        except Exception as err:
+            _stop(config, err)
 
 
 def failed_jobs(sweep_dir: Path) -> tuple[int, list[Path]]:

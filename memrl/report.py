@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
+from memrl.errors import config_error
 from memrl.evaluate import workers_of
 from memrl.schemas import check_report
 
@@ -169,13 +170,13 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
 
     check_report(cfg)
     out = Path(out_dir or cfg.paths.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
     if cfg.evaluate_missing:
         evaluate_missing(cfg)
     results = find_results([str(p) for p in cfg.runs])
     if not results:
-        raise FileNotFoundError(f"report: no evaluation (eval.json) under {list(cfg.runs)}; run "
-                                "python -m memrl.evaluate first or set evaluate_missing=true")
+        raise config_error("runs", f"no evaluation (eval.json) under {', '.join(map(str, cfg.runs))}; "
+                           "run python -m memrl.evaluate first or set evaluate_missing=true")
+    out.mkdir(parents=True, exist_ok=True)
     pid = stats.check_protocols(results)
     scfg = stats_config(cfg)
     rows = stats.table(results, scfg)

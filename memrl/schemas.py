@@ -21,7 +21,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from memrl.data.recipe import DemoRecipe
-from memrl.errors import UserError, config_error
+from memrl.errors import UserError, config_error, load_run_config
 from memrl.fields import SEED_MAX, _element_ok, _valid, check_fields, spec  # noqa: F401
 
 
@@ -137,12 +137,16 @@ def check_train(cfg: DictConfig) -> None:
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
     check_env(cfg.env)
+    if cfg.env.opponent.type != "constant":  # every pattern must match a past agent
+        from memrl.modules.opponents import expand_pool
+
+        expand_pool([str(p) for p in cfg.env.opponent.pool])
     check_device(cfg.device, "device")
     if cfg.get("variant") is not None and not re.fullmatch(VARIANT_NAME, str(cfg.variant)):
         raise config_error("variant", f"a label of letters, digits, '_', '.', '-' (as study.variants "
                            f"names), got {cfg.variant!r}")
-    if cfg.resume is not None and not Path(cfg.resume).is_dir():
-        raise config_error("resume", f"no run folder {cfg.resume}")
+    if cfg.resume is not None:
+        check_resume(cfg)
     from memrl.modes import mode_of
 
     mode = mode_of(cfg)
@@ -161,6 +165,26 @@ def check_train(cfg: DictConfig) -> None:
             stage1_source(str(init), cfg.env, cfg.network)
         except CheckpointError as e:
             raise config_error("mode.stage1.init", str(e)) from None
+
+
+def check_resume(cfg: DictConfig) -> None:
+    """``resume`` names a run folder with a complete checkpoint, intact (its manifest) and made
+    under this config: checked before Hydra writes into the folder, so a refused resume leaves
+    nothing there (and ``resume=<any folder>`` writes nothing into a folder that is no run)."""
+    from memrl.dqn import checkpoint as ckpt
+
+    run = Path(cfg.resume)
+    if not run.is_dir():
+        raise config_error("resume", f"no run folder {cfg.resume}")
+    if not (run / "config.yaml").is_file() and not (run / "checkpoints").is_dir():
+        raise config_error("resume", f"{run} is not a run folder (no config.yaml, no checkpoints/)")
+    if (run / "config.yaml").is_file():
+        load_run_config(run / "config.yaml")
+    state = ckpt.load_state(ckpt.find(run), cfg)
+    if cfg.mode.name == "B" and state["counters"]["stage"] != "B1":  # stage 2 starts from stage1.pt
+        from memrl.checkpoint import check_stage1
+
+        check_stage1(run / "checkpoints" / "stage1.pt")
 
 
 def check_recipe(recipe: Any, env: Any, key: str) -> None:
@@ -342,6 +366,11 @@ def check_report(cfg: DictConfig) -> None:
     for item in cfg.runs:
         if not Path(str(item)).exists():
             raise config_error("runs", f"no such folder {item}")
+        folder = Path(str(item))
+        if not cfg.evaluate_missing and not (folder / "eval.json").is_file() and \
+                next(folder.glob("**/eval.json"), None) is None:
+            raise config_error("runs", f"{item}: no evaluation (eval.json) there; run python -m "
+                               "memrl.evaluate first or set evaluate_missing=true")
 
 
 # ---------------------------------------------------------------------------------------------

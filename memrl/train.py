@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from memrl import signals
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
 from memrl.schemas import check_train, check_writable
@@ -126,7 +127,8 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
                     remove_new_entries(run_dir, before)
                 raise
             record_provenance(run_dir, "start" if fresh else "resume")
-            summary = trainer.run()
+            with signals.deferred():  # a signal stops at the loop's next checkpoint
+                summary = trainer.run()
     log.info("done: %d episodes, %d frames, %d updates in %.0f s; summary in %s",
              summary.episodes, summary.frames, summary.updates, summary.wall_s,
              run_dir / "summary.json")

@@ -12,6 +12,9 @@ from __future__ import annotations
 import os
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
 
 PR_SET_PDEATHSIG = 1
 """``prctl`` option: the signal this process gets when its parent ends (linux/prctl.h)."""
@@ -34,3 +37,34 @@ def die_with_parent() -> None:
         return
     if os.getppid() != parent:  # the parent ended before prctl took effect
         os.kill(os.getpid(), signal.SIGTERM)
+
+
+def worker_start() -> None:
+    """Pool initializer of every memrl pool: :func:`die_with_parent`, and SIGINT / SIGTERM
+    handled as in the main process (:mod:`memrl.signals`): a training worker stops at its next
+    checkpoint, any other raises :class:`~memrl.signals.Interrupted` into its future."""
+    from memrl import signals
+
+    die_with_parent()
+    signals.install(worker=True)
+
+
+@contextmanager
+def stopped_with_parent(pool: Any) -> Iterator[None]:
+    """On :class:`~memrl.signals.Interrupted` in the parent: cancel the jobs not started, send
+    SIGTERM to the workers (a training run writes its checkpoint and stops), wait for them
+    (no orphans, no leaked semaphores), then re-raise."""
+    from memrl import signals
+
+    try:
+        yield
+    except signals.Interrupted:
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in processes:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in processes:
+            proc.join(timeout=300)
+        pool.shutdown(wait=True)
+        raise

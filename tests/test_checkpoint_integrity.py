@@ -72,9 +72,8 @@ def test_resume_refuses_a_damaged_checkpoint_naming_the_file(compose_cfg, finish
     assert {p: p.stat().st_mtime_ns for p in run.rglob("*") if p.is_file()} == before
 
 
-def test_a_damaged_buffer_without_manifest_is_refused_naming_the_buffer(compose_cfg, finished_run,
-                                                                       tmp_path):
-    """Checkpoints written before manifests: the buffer's own loading error, with its path."""
+def test_a_checkpoint_without_its_manifest_is_refused_naming_it(compose_cfg, finished_run, tmp_path):
+    """Nothing verifies a checkpoint whose manifest is gone: refused, not trusted."""
     run = tmp_path / "run"
     shutil.copytree(finished_run, run)
     last = run / "checkpoints" / "last"
@@ -83,7 +82,7 @@ def test_a_damaged_buffer_without_manifest_is_refused_naming_the_buffer(compose_
     truncate(ring, ring.stat().st_size // 2)
     with pytest.raises(ckpt.CheckpointError) as info:
         train(compose_cfg("train", TINY + ["total_episodes=3", f"resume={run}"]))
-    assert one_line(info.value).startswith(str(last / "buffer"))
+    assert one_line(info.value).startswith(str(last / ckpt.MANIFEST))
 
 
 def test_an_intact_checkpoint_passes_its_manifest(finished_run):

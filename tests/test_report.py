@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from memrl.errors import ConfigError
 from memrl.evaluate import evaluate
 from memrl.evaluation import stats, tables
 from memrl.evaluation.figures import band, find_training_runs, learning_curves, smooth
@@ -139,8 +140,9 @@ def test_report_needs_evaluations(tmp_path, compose_cfg):
     with pytest.raises(ValueError, match="runs"):
         report(compose_cfg("report", REPORT), out_dir=tmp_path)
     (tmp_path / "empty").mkdir()
-    with pytest.raises(FileNotFoundError, match="no evaluation"):
-        report(compose_cfg("report", [f"runs=[{tmp_path / 'empty'}]", *REPORT]), out_dir=tmp_path)
+    with pytest.raises(ConfigError, match="no evaluation") as info:  # one line naming the folder
+        report(compose_cfg("report", [f"runs=[{tmp_path / 'empty'}]", *REPORT]), out_dir=tmp_path / "out")
+    assert str(tmp_path / "empty") in str(info.value) and not (tmp_path / "out").exists()
 
 
 # --------------------------------------------------------------------------- figures

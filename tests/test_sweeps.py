@@ -37,19 +37,37 @@ def test_verbatim_mode_b_three_seed_multirun(tmp_path):
     assert not (ROOT / "multirun").exists() and not (tmp_path / "multirun").exists()
 
 
-def test_failing_jobs_let_the_others_finish_then_the_sweep_exits_non_zero(tmp_path):
+def test_a_bad_config_in_any_job_stops_the_sweep_before_it_starts(tmp_path):
     proc = run(["-m", "seed=0,1", "agent.lr=0.001,-1.0", *SMALL], tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: job 1 [seed=0 agent.lr=-1.0"), proc.stderr
+    assert "'agent.lr'" in lines[0]
+    assert not (tmp_path / "outputs").exists()  # no job launched, no sweep folder
+
+
+def test_failing_jobs_let_the_others_finish_then_the_sweep_exits_non_zero(tmp_path):
+    """A failure found only while a job runs (here: a folder that is no dataset)."""
+    empty = tmp_path / "not_a_dataset"
+    empty.mkdir()
+    data = tmp_path / "demos"
+    env = {**os.environ, "MEMRL_ROOT": str(tmp_path)}
+    rec = subprocess.run([sys.executable, "-m", "memrl.record", "episodes=2", "keep=all",
+                          "env.duration=30", f"out={data}", "progress=false"], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert rec.returncode == 0, rec.stderr[-3000:]
+    proc = run(["-m", "+mode=A", f"mode.demos_path={data},{empty}", "seed=0,1", *SMALL], tmp_path)
     assert proc.returncode == 1, proc.stderr[-3000:]
     jobs = job_dirs(tmp_path)
     assert len(jobs) == 4
     failed = [j for j in jobs if (j / "error.txt").exists()]
-    assert [j.name for j in failed] == ["1", "3"]  # agent.lr is the inner loop: jobs 1 and 3
+    assert [j.name for j in failed] == ["2", "3"]  # demos_path is the outer loop: jobs 2 and 3
     assert all((j / "summary.json").exists() for j in jobs if j not in failed)
-    assert all("agent.lr" in (j / "error.txt").read_text() for j in failed)
+    assert all(str(empty) in (j / "error.txt").read_text() for j in failed)
     report = proc.stderr[proc.stderr.index("sweep: "):].splitlines()
     assert report[0].startswith("sweep: 2 of 4 jobs failed")
     for line, job in zip(report[1:3], failed, strict=True):
-        assert f"job {job.name} [" in line and "agent.lr=-1.0" in line
+        assert f"job {job.name} [" in line and f"mode.demos_path={empty}" in line
         assert line.endswith(str(job / "error.txt"))
 
 

@@ -247,6 +247,9 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
     del state["wall_s"]  # and the record of the run's training time
     torch.save(state, state_file)
     (state_file.parent / ckpt.MANIFEST).unlink()  # such checkpoints predate the manifest too
+    with pytest.raises(ckpt.CheckpointError, match=ckpt.MANIFEST):  # unverifiable: refused
+        train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}", *legacy]))
+    ckpt.write_manifest(state_file.parent)  # the way the refusal names, for files known good
     with pytest.raises(ckpt.CheckpointError, match="agent.overlap") as err:
         train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
     assert "agent.precision: 'float32' (checkpoint) vs 'auto' (now)" in str(err.value)
@@ -271,7 +274,7 @@ def test_checkpoint_from_before_the_demo_recipe_asks_for_the_old_example(compose
         state = torch.load(state_file, weights_only=False)
         del state["config"]["mode"]["example"]
         torch.save(state, state_file)
-        (state_file.parent / ckpt.MANIFEST).unlink()
+        ckpt.write_manifest(state_file.parent)  # an older checkpoint, re-manifested as the refusal says
         again = compose_cfg("train", TINY + ["total_episodes=2", f"resume={run}", *extra])
         if mode == "A":
             with pytest.raises(ckpt.CheckpointError, match="mode.example") as err:
@@ -345,7 +348,7 @@ def test_periodic_evaluation_by_env_steps_trains_the_same_weights(compose_cfg, t
     state = torch.load(state_file, weights_only=False)
     state["config"]["eval"] = {"every": 100, "episodes": 10}
     torch.save(state, state_file)
-    (state_file.parent / ckpt.MANIFEST).unlink()
+    ckpt.write_manifest(state_file.parent)  # edited on purpose: its manifest written again
     steps = [int(r["env_steps"]) for r in rows(tmp_path / "on" / "eval_periodic.csv")]
     # 4 envs add 4 env steps per step, and a round is due every 4 (agent.train_every): the
     # first multiple of 4 at or past 50, then 100 itself

@@ -132,11 +132,16 @@ def write_manifest(ckpt_dir: Path) -> dict[str, Any]:
 def check_manifest(ckpt_dir: Path) -> None:
     """Refuse a checkpoint whose files differ from its manifest, naming the first bad file.
 
-    Checkpoints written before manifests existed have none and are not checked.
+    A checkpoint without its manifest cannot be verified and is refused (checkpoints written
+    before manifests existed: write one with :func:`write_manifest` once the files are known
+    good).
     """
     file = ckpt_dir / MANIFEST
     if not file.is_file():
-        return
+        raise CheckpointError(f"{file}: missing, so the checkpoint cannot be verified; cannot resume "
+                              "from it (a checkpoint from before manifests: python -c \"from "
+                              "memrl.dqn.checkpoint import write_manifest as w; "
+                              f"w(__import__('pathlib').Path('{ckpt_dir}'))\" if its files are good)")
     try:
         files = json.loads(file.read_text())["files"]
     except (ValueError, KeyError) as err:

@@ -28,6 +28,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
+from memrl import signals
 from memrl.checkpoint import save_qnet, stage1_source
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.builder import Stage, build_stage
@@ -149,6 +150,9 @@ class Trainer:
                            else steps.frames)
                 if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
                     self.save_checkpoint()
+                if signals.stop_requested() and (self.num_envs > 1 or self.collector.between_episodes()):
+                    self.save_checkpoint()  # SIGINT / SIGTERM: a resumable stop (memrl.signals)
+                    signals.stop()
             batches = self._due_batches()  # the rounds the last steps made due
             self._book(batches, self.rounds.flush(batches))
         finally:
@@ -182,6 +186,8 @@ class Trainer:
                 if p.stop_reason:
                     self._finish_stage1()
                 self.save_checkpoint()
+                if signals.stop_requested():  # stage 1 stops at its next checkpoint
+                    signals.stop()
 
     # ------------------------------------------------------------------ steps of the loop
     def _due_batches(self) -> list[TensorDictBase]:

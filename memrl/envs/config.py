@@ -8,6 +8,7 @@ at start), and :func:`validate_env_config` checks values and names the bad key.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -200,17 +201,166 @@ def _build(cls: type, values: dict[str, Any], prefix: str) -> Any:
     return cls(**kwargs)
 
 
-def _check_range(cfg: LaneChangeConfig, key: str, low_min: float = 0.0) -> None:
-    value = getattr(cfg, key)
-    _check(
-        isinstance(value, list | tuple) and len(value) == 2 and low_min <= value[0] <= value[1],
-        key,
-        f"expected [low, high] with {low_min} <= low <= high, got {value!r}",
-    )
+AGENT_X = 500.0
+"""Where the agent starts along the road [m] (``memrl.envs.scene`` places the scene there)."""
+
+
+def _int(ge: int) -> tuple[Any, str]:
+    return (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= ge), f"need an int >= {ge}"
+
+
+def _num(gt: float | None = None, ge: float | None = None, le: float | None = None) -> tuple[Any, str]:
+    def ok(v: Any) -> bool:
+        return (isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                and (gt is None or v > gt) and (ge is None or v >= ge) and (le is None or v <= le))
+    bounds = [f"> {gt}" if gt is not None else "", f">= {ge}" if ge is not None else "",
+              f"<= {le}" if le is not None else ""]
+    return ok, "need a finite number " + " and ".join(b for b in bounds if b)
+
+
+def _pair(v: Any) -> bool:
+    return (isinstance(v, list | tuple) and len(v) == 2 and all(_num(ge=0)[0](x) for x in v)
+            and v[0] <= v[1])
+
+
+_RANGE = (_pair, "expected [low, high] finite numbers with 0 <= low <= high")
+
+RULES: dict[str, tuple[Any, str]] = {
+    "lanes_count": _int(2),
+    "lane_width": _num(gt=0),
+    "road_length": _num(gt=0),
+    "vehicle_length": _num(gt=0),
+    "vehicle_width": _num(gt=0),
+    "dt": _num(gt=0),
+    "duration": _int(1),
+    "speed_step": _num(ge=0),
+    "curvature_step": _num(ge=0),
+    "speed_limits": _RANGE,
+    "curvature_limit": _num(gt=0),
+    "initial_speed": _RANGE,
+    "initial_offset": _num(ge=0),
+    "initial_heading": _num(ge=0),
+    "initial_curvature": _num(ge=0),
+    "other_speed": _RANGE,
+    "spawn_ahead": _num(ge=0),
+    "spawn_behind": _num(ge=0),
+    "spawn_gap": _num(ge=0),
+    "spawn_attempts": _int(1),
+    "lane_centre_tolerance": _num(ge=0),
+    "stopped_speed": _num(ge=0),
+    "frame_stack": _int(1),
+    "frame_stride": _int(1),
+    "num_envs": _int(1),
+    "opponent.learned_fraction": _num(ge=0, le=1),
+    "opponent.epsilon": _num(ge=0, le=1),
+    "reward.collision": _num(),
+    "reward.lane_centre": _num(),
+    "reward.stopped": _num(),
+    "reward.target_lane": _num(),
+    "reward.non_target_lane": _num(),
+    "bev.width": _int(8),
+    "bev.height": _int(8),
+    "bev.lateral_scale": _num(gt=0),
+    "bev.longitudinal_scale": _num(gt=0),
+    "bev.dash_length": _num(gt=0),
+    "bev.path_length": _num(ge=0),
+    "scene.width": _int(8),
+    "scene.height": _int(8),
+    "scene.lateral_scale": _num(gt=0),
+    "scene.longitudinal_scale": _num(gt=0),
+}
+"""One rule per key: (test of the value alone, what is valid). A new key is one line here;
+the checks across keys (ranges that must fit together) are :func:`_check_together`."""
+
+
+def _get(cfg: Any, key: str) -> Any:
+    for part in key.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def max_cars_room(cfg: LaneChangeConfig) -> int:
+    """Other cars that always find room at spawn, however the earlier ones were placed.
+
+    Spawn keeps centres ``vehicle_length + spawn_gap`` apart (``d``) within a window of
+    ``spawn_behind + spawn_ahead`` per lane, and clear of the agent by ``vehicle_length +
+    2 spawn_gap``. When no room is left, the open intervals of half-width ``d`` round the placed
+    cars (and the agent's) cover the window, so a lane full to the brim holds at least
+    ``ceil((window - agent's share) / 2d)`` cars: beyond that total a car may find no room.
+    """
+    d = cfg.vehicle_length + cfg.spawn_gap
+    low, high = AGENT_X - cfg.spawn_behind, AGENT_X + cfg.spawn_ahead
+    agent_gap = cfg.vehicle_length + 2 * cfg.spawn_gap
+    window = high - low
+    agent_share = max(0.0, min(AGENT_X + agent_gap, high) - max(AGENT_X - agent_gap, low))
+    others = math.ceil(window / (2 * d)) if window > 0 else 1
+    own = max(0, math.ceil((window - agent_share) / (2 * d))) if window > 0 else 0
+    return (cfg.lanes_count - 1) * others + own
+
+
+def min_spawn_gap(cfg: LaneChangeConfig) -> float:
+    """The smallest ``spawn_gap`` with no overlap at spawn [m]: cars of one lane are straight,
+    so 0 (bumper to bumper); the agent may start turned by up to ``initial_heading``, which
+    lengthens its footprint along the road to ``L cos h + W sin h`` and needs
+    ``2 spawn_gap >= (L cos h + W sin h - L) / 2``."""
+    h = cfg.initial_heading
+    along = cfg.vehicle_length * math.cos(h) + cfg.vehicle_width * math.sin(h)
+    return max(0.0, (along - cfg.vehicle_length) / 4)
+
+
+def min_road_length(cfg: LaneChangeConfig) -> float:
+    """The road an episode can use [m]: from 0 to the farthest a car can get in ``duration``
+    steps (the agent starts at 500 m, other cars up to ``spawn_ahead`` beyond it)."""
+    t = cfg.duration * cfg.dt
+    return AGENT_X + max(cfg.speed_limits[1] * t, cfg.spawn_ahead + cfg.other_speed[1] * t) \
+        + cfg.vehicle_length
+
+
+def _check_together(cfg: LaneChangeConfig) -> None:
+    """Checks across keys: ranges that must fit together."""
+    _check(cfg.vehicle_width < cfg.lane_width, "vehicle_width", "must be < lane_width")
+    low, high = cfg.speed_limits
+    _check(low <= cfg.initial_speed[0] and cfg.initial_speed[1] <= high, "initial_speed",
+           f"{list(cfg.initial_speed)} must lie inside speed_limits {list(cfg.speed_limits)}")
+    _check(cfg.initial_offset < 0.5 * (cfg.lane_width - cfg.vehicle_width), "initial_offset",
+           "need 0 <= initial_offset < (lane_width - vehicle_width) / 2")
+    _check(cfg.initial_heading < 0.5, "initial_heading", "need 0 <= initial_heading < 0.5 rad")
+    _check(cfg.initial_curvature <= cfg.curvature_limit, "initial_curvature",
+           "need 0 <= initial_curvature <= curvature_limit")
+    gap = min_spawn_gap(cfg)
+    _check(cfg.spawn_gap >= gap, "spawn_gap",
+           f"{cfg.spawn_gap} lets cars overlap at spawn; need >= {gap:.3g} m")
+    road = min_road_length(cfg)
+    _check(cfg.road_length >= road, "road_length",
+           f"{cfg.road_length} m is shorter than an episode can drive (the agent starts at "
+           f"{AGENT_X:g} m); need >= {road:.0f} m")
+    target = cfg.target_lane
+    _check(target == "random" or (isinstance(target, int) and not isinstance(target, bool)
+                                  and 0 <= target < cfg.lanes_count),
+           "target_lane", f"expected 'random' or an int in [0, {cfg.lanes_count - 1}], got {target!r}")
+    _check(cfg.initial_lane in ("random", "non_goal"), "initial_lane",
+           f"expected 'random' or 'non_goal', got {cfg.initial_lane!r}")
+    count = cfg.vehicles_count
+    if isinstance(count, list | tuple):
+        _check(len(count) == 2 and all(_int(0)[0](c) for c in count) and count[0] <= count[1],
+               "vehicles_count", f"expected [low, high] ints with 0 <= low <= high, got {count!r}")
+    else:
+        _check(_int(0)[0](count), "vehicles_count", f"need an int >= 0, got {count!r}")
+    most = max(count) if isinstance(count, list | tuple) else count
+    room = max_cars_room(cfg)
+    _check(most <= room, "vehicles_count",
+           f"{count!r}: the spawn window holds at most {room} other cars for sure (raise "
+           "spawn_ahead / spawn_behind, or lower spawn_gap)")
+    opp = cfg.opponent
+    _check(opp.type in ("constant", "learned", "mixed"), "opponent.type",
+           f"expected constant, learned or mixed, got {opp.type!r}")
+    _check(opp.type == "constant" or len(opp.pool) > 0, "opponent.pool",
+           f"opponent.type={opp.type} needs a pool of past agents (run folders or final.pt files)")
 
 
 def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> LaneChangeConfig:
-    """Build a :class:`LaneChangeConfig` from a (possibly partial) dict and check every value.
+    """Build a :class:`LaneChangeConfig` from a (possibly partial) dict and check every value:
+    each key alone (:data:`RULES`: finite numbers in range), then the keys together.
 
     Args:
         values: keys of :class:`LaneChangeConfig`.
@@ -225,64 +375,10 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
     allowed = set(allow)
     cfg: LaneChangeConfig = _build(
         LaneChangeConfig, {k: v for k, v in values.items() if k not in allowed}, "")
-    _check(isinstance(cfg.lanes_count, int) and cfg.lanes_count >= 2, "lanes_count", "need >= 2")
-    for key in ("lane_width", "vehicle_length", "vehicle_width", "dt", "road_length"):
-        _check(getattr(cfg, key) > 0, key, f"must be > 0, got {getattr(cfg, key)!r}")
-    _check(cfg.vehicle_width < cfg.lane_width, "vehicle_width", "must be < lane_width")
-    _check(isinstance(cfg.duration, int) and cfg.duration >= 1, "duration", "need an int >= 1")
-    for key in ("speed_limits", "initial_speed", "other_speed"):
-        _check_range(cfg, key)
-    _check(cfg.curvature_limit > 0, "curvature_limit", "must be > 0")
-    _check(0 <= cfg.initial_offset < 0.5 * (cfg.lane_width - cfg.vehicle_width), "initial_offset",
-           "need 0 <= initial_offset < (lane_width - vehicle_width) / 2")
-    _check(0 <= cfg.initial_heading < 0.5, "initial_heading", "need 0 <= initial_heading < 0.5 rad")
-    _check(0 <= cfg.initial_curvature <= cfg.curvature_limit, "initial_curvature",
-           "need 0 <= initial_curvature <= curvature_limit")
-    target = cfg.target_lane
-    _check(
-        target == "random" or (isinstance(target, int) and 0 <= target < cfg.lanes_count),
-        "target_lane",
-        f"expected 'random' or an int in [0, {cfg.lanes_count - 1}], got {target!r}",
-    )
-    _check(
-        cfg.initial_lane in ("random", "non_goal"),
-        "initial_lane",
-        f"expected 'random' or 'non_goal', got {cfg.initial_lane!r}",
-    )
-    count = cfg.vehicles_count
-    if isinstance(count, list | tuple):
-        _check(
-            len(count) == 2 and all(isinstance(c, int) for c in count) and 0 <= count[0] <= count[1],
-            "vehicles_count",
-            f"expected [low, high] ints with 0 <= low <= high, got {count!r}",
-        )
-    else:
-        _check(isinstance(count, int) and count >= 0, "vehicles_count", f"need an int >= 0, got {count!r}")
-    _check(cfg.spawn_ahead >= 0 and cfg.spawn_behind >= 0, "spawn_ahead", "spawn ranges must be >= 0")
-    _check(cfg.lane_centre_tolerance >= 0, "lane_centre_tolerance", "must be >= 0")
-    opp = cfg.opponent
-    _check(opp.type in ("constant", "learned", "mixed"), "opponent.type",
-           f"expected constant, learned or mixed, got {opp.type!r}")
-    _check(0.0 <= opp.learned_fraction <= 1.0, "opponent.learned_fraction", "must be in [0, 1]")
-    _check(0.0 <= opp.epsilon <= 1.0, "opponent.epsilon", "must be in [0, 1]")
-    _check(opp.type == "constant" or len(opp.pool) > 0, "opponent.pool",
-           f"opponent.type={opp.type} needs a pool of past agents (run folders or final.pt files)")
-    for name in ("bev", "scene"):
-        sub = getattr(cfg, name)
-        for key in ("width", "height"):
-            _check(getattr(sub, key) >= 8, f"{name}.{key}", "must be >= 8 px")
-        for key in ("lateral_scale", "longitudinal_scale"):
-            _check(getattr(sub, key) > 0, f"{name}.{key}", "must be > 0 m/px")
-    _check(cfg.bev.path_length >= 0, "bev.path_length", "must be >= 0 m (0: no path drawn)")
-    stack = cfg.frame_stack
-    _check(isinstance(stack, int) and not isinstance(stack, bool) and stack >= 1,
-           "frame_stack", f"need an int >= 1, got {cfg.frame_stack!r}")
-    stride = cfg.frame_stride
-    _check(isinstance(stride, int) and not isinstance(stride, bool) and stride >= 1,
-           "frame_stride", f"need an int >= 1, got {cfg.frame_stride!r}")
-    n = cfg.num_envs
-    _check(isinstance(n, int) and not isinstance(n, bool) and n >= 1,
-           "num_envs", f"need an int >= 1, got {cfg.num_envs!r}")
+    for key, (ok, valid) in RULES.items():
+        value = _get(cfg, key)
+        _check(ok(value), key, f"{valid}, got {value!r}")
+    _check_together(cfg)
     return cfg
 
 

@@ -12,12 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from memrl.envs.config import LaneChangeConfig, OpponentConfig
+from memrl.envs.config import AGENT_X, LaneChangeConfig, OpponentConfig  # noqa: F401 (AGENT_X re-exported)
 
 STATE = ("x", "y", "heading", "speed", "curvature")
 """Columns of a car's state row: position [m], heading [rad], speed [m/s], curvature [rad/m]."""
-AGENT_X = 500.0
-"""The agent starts this far from the road's beginning [m]."""
 
 
 @dataclass

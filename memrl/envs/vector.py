@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 from gymnasium import spaces
+from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
@@ -48,6 +49,7 @@ class LaneChangeVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.render_mode = None
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._was_reset = False  # step before reset: ResetNeeded, as SyncVectorEnv's envs
 
     def reset(self, *, seed: int | list[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -66,10 +68,13 @@ class LaneChangeVectorEnv(VectorEnv):
         ids = np.flatnonzero(mask)
         self.engine.reset(ids.tolist(), [seeds[i] for i in ids])
         self._autoreset[ids] = False
+        self._was_reset = True
         return self._obs(), self._info()
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """One step of every env; an env that finished at the last step is reset instead."""
+        if not self._was_reset:
+            raise ResetNeeded("Cannot call env.step() before calling env.reset()")
         actions = np.asarray(actions)
         out = self.engine.step(actions, active=torch.as_tensor(~self._autoreset))
         reward = out.reward.cpu().numpy()

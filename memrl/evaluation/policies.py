@@ -29,6 +29,7 @@ from omegaconf import OmegaConf
 
 from memrl.checkpoint import load_qnet
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.errors import load_run_config
 from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
 from memrl.modes import MODES
@@ -158,7 +159,7 @@ def find_runs(paths: str | Path | Sequence[str | Path]) -> list[Path]:
 def run_config(run: Path) -> dict[str, Any]:
     """A run's resolved ``config.yaml`` as a plain dict ({} when missing)."""
     path = run / "config.yaml"
-    return OmegaConf.to_container(OmegaConf.load(path)) if path.is_file() else {}  # type: ignore[return-value]
+    return OmegaConf.to_container(load_run_config(path)) if path.is_file() else {}  # type: ignore[return-value]
 
 
 def run_label(cfg: dict[str, Any]) -> str:

@@ -21,6 +21,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from memrl.errors import load_run_config
 from memrl.evaluation.results import EvalResult
 from memrl.modes import used
 
@@ -92,7 +93,7 @@ def run_settings(result: EvalResult, ignore: Sequence[str] = IGNORED_KEYS) -> di
     found = [p for p in (run, result.path.parent) if (p / "config.yaml").is_file()]
     if not found:
         return {}
-    tree = OmegaConf.to_container(OmegaConf.load(found[0] / "config.yaml"), resolve=False)
+    tree = OmegaConf.to_container(load_run_config(found[0] / "config.yaml"), resolve=False)
     if isinstance(tree, dict):  # keys the run never read (Default: mode.*) split no row
         tree = used({str(k): v for k, v in tree.items()})
     return {k: v for k, v in flatten(tree).items() if not is_ignored(k, ignore)}

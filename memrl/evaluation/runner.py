@@ -34,7 +34,7 @@ from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_j
 from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord, closing_or_none
 from memrl.modules.policy import FrameStack, StopRecording
-from memrl.workers import die_with_parent
+from memrl.workers import stopped_with_parent, worker_start
 
 __all__ = ["Actor", "FrameStack", "Job", "JobResult", "StepHook", "run_job", "run_jobs", "split",
            "torch_threads"]
@@ -165,7 +165,7 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
         # spawn, not fork: a forked child may hang in torch's thread pool
         pieces = split(jobs, 4 * workers)
         with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
-                                 initializer=die_with_parent) as pool:
+                                 initializer=worker_start) as pool, stopped_with_parent(pool):
             futures = [pool.submit(run_job, actor, piece, batch) for piece in pieces]
             for future in as_completed(futures):
                 res = future.result()

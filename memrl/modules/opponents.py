@@ -21,12 +21,13 @@ from torch.func import functional_call, stack_module_state
 from memrl.envs.controllers import CarController
 from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
+from memrl.errors import UserError
 
 if TYPE_CHECKING:
     from memrl.envs.lane_change import LaneChangeEnv
 
 
-class OpponentPoolError(ValueError):
+class OpponentPoolError(UserError, ValueError):
     """A pool entry matches no checkpoint, or a checkpoint cannot drive a car."""
 
 

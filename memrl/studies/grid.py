@@ -24,7 +24,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from memrl.modes import by_label
-from memrl.workers import die_with_parent
+from memrl.workers import stopped_with_parent, worker_start
 
 log = logging.getLogger(__name__)
 
@@ -200,7 +200,7 @@ def run_cells(grid: Sequence[Cell], jobs: int,
         return out
     # spawn: a fresh interpreter per worker (no forked torch / OpenMP state)
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
-                             initializer=die_with_parent) as pool:
+                             initializer=worker_start) as pool, stopped_with_parent(pool):
         futures: list[tuple[Cell, bool, Future]] = [
             (cell, resume, pool.submit(trainer, cell.cfg, str(cell.run_dir), resume))  # type: ignore[arg-type]
             for cell, resume in todo]

@@ -1,0 +1,166 @@
+"""SIGINT and SIGTERM stop a command cleanly: a resumable checkpoint, one line with the exact
+resume command, exit status 128 + signal; the command as printed finishes equal to an
+uninterrupted run."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.helpers import csv_rows
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ["+experiment=smoke", "total_frames=700", "progress=false"]
+
+
+def environ(root: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    env.update(MEMRL_ROOT=str(root), PYTHONPATH=str(ROOT))
+    return env
+
+
+def start(args: list[str], root: Path) -> subprocess.Popen:
+    def default_sigint() -> None:  # a background job of a shell would ignore SIGINT
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    return subprocess.Popen([sys.executable, "-m", *args], cwd=ROOT, env=environ(root),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=default_sigint)
+
+
+def run_folder(root: Path) -> Path:
+    runs = list((root / "outputs" / "train" / "runs").glob("*"))
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+def wait_for_episodes(root: Path, proc: subprocess.Popen, n: int, timeout: float = 240) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        assert proc.poll() is None, proc.communicate()
+        found = list((root / "outputs" / "train" / "runs").glob("*/episodes.csv"))
+        if found and len(found[0].read_text().splitlines()) > n:
+            return
+        time.sleep(0.2)
+    raise AssertionError("no episodes")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("full")
+    proc = subprocess.run([sys.executable, "-m", "memrl.train", *SMOKE], cwd=ROOT,
+                          env=environ(root), capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    return run_folder(root)
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_signal_during_training_keeps_a_checkpoint_and_prints_the_resume_command(
+        tmp_path, uninterrupted, sig, status):
+    stop_and_resume(tmp_path, SMOKE, uninterrupted, sig, status)
+
+
+def test_signal_during_batched_training_stops_mid_episode_and_resumes_exactly(tmp_path):
+    args = [*SMOKE, "env.num_envs=4"]
+    full = tmp_path / "full"
+    proc = subprocess.run([sys.executable, "-m", "memrl.train", *args], cwd=ROOT,
+                          env=environ(full), capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    stop_and_resume(tmp_path / "cut", args, run_folder(full), signal.SIGTERM, 143)
+
+
+def stop_and_resume(tmp_path: Path, args: list[str], uninterrupted: Path, sig: int, status: int) -> None:
+    tmp_path.mkdir(exist_ok=True)
+    proc = start(["memrl.train", *args], tmp_path)
+    wait_for_episodes(tmp_path, proc, 5)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == status, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "Traceback" not in err and "leaked semaphore" not in err, err
+    last = lines[-1]
+    assert last.startswith(f"interrupted by {signal.Signals(sig).name}: ") and "resume with: " in last
+    run = run_folder(tmp_path)
+    assert (run / "checkpoints" / "last" / "COMPLETE").is_file()
+    assert not list(run.rglob("*.tmp")) and not (run / "checkpoints" / "final.pt").exists()
+
+    command = shlex.split(last.split("resume with: ", 1)[1])
+    assert command[:3] == ["python", "-m", "memrl.train"] and command[-1] == f"resume={run}"
+    again = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, env=environ(tmp_path),
+                           capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr
+    a = torch.load(uninterrupted / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    b = torch.load(run / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert csv_rows(run / "episodes.csv") == csv_rows(uninterrupted / "episodes.csv")
+
+
+@pytest.mark.parametrize("after_s", [4, 12], ids=["workers starting", "workers driving"])
+def test_signal_during_evaluation_stops_its_workers_and_leaves_no_folder(tmp_path, after_s):
+    proc = start(["memrl.evaluate", "policy=scripted", "protocol.episodes=400", "workers=2",
+                  "progress=false"], tmp_path)
+    time.sleep(after_s)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "Traceback" not in err and "leaked semaphore" not in err, err
+    assert lines[-1].startswith("interrupted by SIGINT: nothing written; run again with: python -m "
+                                "memrl.evaluate policy=scripted"), err
+    runs = tmp_path / "outputs" / "evaluate" / "runs"
+    assert not runs.exists() or list(runs.iterdir()) == []
+
+
+def test_signal_during_a_study_keeps_its_runs_and_the_printed_command_finishes_it(tmp_path):
+    from tests.test_study import study_overrides
+
+    train = ["+experiment=smoke", "total_frames=900", "agent.warmup_frames=16", "buffer.capacity=400",
+             "env.duration=30", "logger=none", "checkpoint_every=2", "eval.every=0"]
+    folder = tmp_path / "s"
+    args = [*study_overrides(folder, train, modes="[Default]", report=("rollouts.rows=[]",)),
+            "study.baselines=[]", "study.jobs=1"]
+    proc = start(["memrl.study", *args], tmp_path)
+    run = folder / "runs" / "Default_constant_s0"
+    end = time.monotonic() + 240
+    while not ((run / "episodes.csv").is_file() and len((run / "episodes.csv").read_text().splitlines()) > 8):
+        assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "leaked semaphore" not in err, err
+    last = [ln for ln in err.splitlines() if ln.strip()][-1]
+    assert last.startswith("interrupted by SIGTERM: ") and "continue with: " in last, err
+    assert (run / "checkpoints" / "last" / "COMPLETE").is_file() and not (run / "summary.json").exists()
+    assert not list(folder.rglob("*.tmp"))
+    command = shlex.split(last.split("continue with: ", 1)[1])
+    again = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, env=environ(tmp_path),
+                           capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert (run / "summary.json").is_file() and (folder / "report.md").is_file()
+
+
+def test_a_deferred_stop_waits_for_the_check_and_a_second_signal_stops_at_once():
+    from memrl import signals
+
+    signals.install()
+    try:
+        with pytest.raises(signals.Interrupted) as info:
+            with signals.deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                assert signals.stop_requested() == signal.SIGTERM  # only asked, not raised
+                with pytest.raises(signals.Interrupted):  # a second signal: at once
+                    os.kill(os.getpid(), signal.SIGINT)
+        assert info.value.exit_status == 143  # the stop not acted on is raised on leaving
+        assert signals.stop_requested() is None
+    finally:
+        signals.uninstall()
