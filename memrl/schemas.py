@@ -199,6 +199,8 @@ class RecordSchema:
     """Probability per step of a random action instead of the driver's."""
     out: str = MISSING
     """Dataset folder."""
+    resume: str | None = None
+    """Folder of a stopped recording to go on with (its plan replaces episodes, seed, keep, ...)."""
     overwrite: bool = MISSING
     example: bool = MISSING
     recipe: DemoRecipe = field(default_factory=DemoRecipe)
@@ -224,6 +226,8 @@ def check_record(cfg: DictConfig) -> None:
             raise config_error("example", "the example dataset is made by the scripted driver "
                                f"(demos=scripted), not demos={cfg.demos.source}")
         check_writable(cfg.paths.data_dir, "paths.data_dir")
+    elif cfg.get("resume") is not None:
+        check_writable(Path(str(cfg.resume)), "resume")
     else:
         out = Path(str(cfg.out))
         if out.exists() and not cfg.overwrite:

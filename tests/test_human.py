@@ -124,8 +124,11 @@ def test_escape_stops_and_drops_the_unfinished_episode(pg, compose_cfg, tmp_path
     cfg = compose_cfg("record", ["demos=human", "demos.policy.fps=0", "demos.policy.wait_for_start=false",
                                  "episodes=3", "keep=all", f"out={tmp_path / 'none'}", "progress=false"])
     press(pg, pg.K_UP, pg.K_ESCAPE)
-    summary = record(cfg)
-    assert summary.stopped_early and summary.path is None and summary.recorded["episodes"] == 0
+    from memrl.stop import Stopped
+
+    with pytest.raises(Stopped, match="before any episode finished; nothing saved") as stop:
+        record(cfg)
+    assert stop.value.status == 130
     assert not (tmp_path / "none").exists()
 
 
