@@ -250,6 +250,8 @@ class EvaluateSchema:
     """Episodes stepped in lockstep per process."""
     progress: bool = MISSING
     debug: bool = MISSING
+    resume: str | None = None
+    """Folder of a stopped evaluation (a person's): drive its missing episodes (same scenes)."""
     env: Any = MISSING
     protocol: Any = MISSING
     policy: Any = MISSING

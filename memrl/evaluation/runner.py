@@ -32,6 +32,7 @@ from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_j
 from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
 from memrl.modules.policy import FrameStack, StopRecording
+from memrl.stop import Terminated, exit_status_of
 from memrl.workers import die_with_parent
 
 __all__ = ["Actor", "FrameStack", "Job", "JobResult", "StepHook", "run_job", "run_jobs", "split",
@@ -88,6 +89,9 @@ def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHoo
     except StopRecording:
         log.info("evaluation stopped after %d finished episodes", len(result.records))
         result.stopped_early = True
+    except (KeyboardInterrupt, Terminated) as err:  # Ctrl-C, SIGTERM: keep what finished
+        log.info("evaluation interrupted after %d finished episodes", len(result.records))
+        result.stopped_early, result.interrupted = True, exit_status_of(err)
     finally:
         for env in envs:
             env.close()
@@ -173,7 +177,7 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
             out.records += res.records
             bar.update(len(res.records))
             if res.stopped_early:
-                out.stopped_early = True
+                out.stopped_early, out.interrupted = True, res.interrupted
                 break
     bar.close()
     order = {lane: i for i, lane in enumerate(INITIAL_LANES)}
