@@ -207,3 +207,20 @@ def test_no_display_is_refused_in_one_line(monkeypatch):
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     with pytest.raises(NoDisplayError, match="xvfb-run"):
         KeyboardDriver()
+
+
+def test_person_is_in_the_dataset_and_training_logs_what_it_loaded(pg, compose_cfg, tmp_path, caplog):
+    from memrl.data.demos import read_metadata
+    from memrl.train import prior_knowledge
+
+    out = tmp_path / "ann"
+    cfg = compose_cfg("record", ["demos=human", "demos.person=ann", "demos.policy.fps=0",
+                                 "demos.policy.wait_for_start=false", "episodes=1", "keep=all",
+                                 "env.duration=20", f"out={out}", "progress=false"])
+    summary = record(cfg)
+    assert read_metadata(out)["person"] == "ann"
+    train_cfg = compose_cfg("train", ["+mode=A", f"mode.demos_path={out}", "env.duration=20"])
+    with caplog.at_level("INFO", logger="memrl.train"):
+        td = prior_knowledge(train_cfg)
+    assert td.shape[0] == summary.kept["transitions"]
+    assert f"prior knowledge: {out.resolve()} ({td.shape[0]} transitions)" in caplog.text
