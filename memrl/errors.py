@@ -77,3 +77,16 @@ def _first_lines(err: BaseException) -> str:
     lines = [ln.strip() for ln in str(err).splitlines()
              if ln.strip() and not ln.startswith(_NOISE) and not ln.strip().startswith(_NOISE[:4])]
     return "; ".join(ln.rstrip(".") for ln in lines) or type(err).__name__
+
+
+def instantiate_checked(node: object) -> object:
+    """Hydra's ``instantiate``, but a :class:`UserError` raised by the object's constructor
+    comes out as itself (one line), not wrapped in Hydra's "Error in call to target ..."."""
+    from hydra.utils import instantiate
+
+    try:
+        return instantiate(node)
+    except Exception as err:
+        if isinstance(err.__cause__, UserError):
+            raise err.__cause__ from None
+        raise

@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import hydra
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
+from memrl.errors import instantiate_checked
 from memrl.schemas import check_evaluate
 
 if TYPE_CHECKING:  # the evaluation stack (torch) loads on the first run, not for --help
@@ -49,7 +49,7 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
 
     check_evaluate(cfg)
     protocol = check_protocol(cfg.protocol)
-    source: PolicySource = instantiate(cfg.policy)
+    source: PolicySource = instantiate_checked(cfg.policy)  # type: ignore[assignment]
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
     candidates = source.candidates()
     resume = resumed(cfg, candidates) if cfg.get("resume") is not None else None

@@ -10,12 +10,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import hydra
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
-from memrl.errors import UserError
+from memrl.errors import UserError, instantiate_checked
 from memrl.schemas import check_record
 from memrl.stop import EXIT_OF, SIGINT_EXIT, SIGTERM_EXIT, SignalGuard, Stopped
 
@@ -106,7 +105,7 @@ def _record(cfg: DictConfig, guard: SignalGuard) -> tuple[Path | None, Recording
                   tail_steps=plan.tail_steps, action_noise=plan.action_noise)
         env, person = plan.env_config, person or plan.person
         log.info("resuming %s: episode %d of %d", out, plan.next_episode + 1, plan.episodes)
-    policy = instantiate(cfg.demos.policy)
+    policy = instantiate_checked(cfg.demos.policy)
     path, rec = record_to_dataset(
         env, policy, out, render=bool(getattr(policy, "needs_render", False)),
         progress=bool(cfg.progress), overwrite=bool(cfg.overwrite), person=person, resume=resume,

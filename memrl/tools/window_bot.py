@@ -20,6 +20,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -112,7 +113,14 @@ class Bot:
     gap_behind: float = 10.0
     follow: float = 16.0
     """[m]: slow down when a car ahead in the lane is nearer."""
+    speed_room: float = 40.0
+    """Speed steps it may add or take away from an episode's start speed (it counts what it pressed)."""
     changing: bool = False
+    net: float = 0.0
+    """Speed steps pressed so far in this episode (up minus down), from the time keys were held."""
+
+    def new_episode(self) -> None:
+        self.changing, self.net = False, 0.0
 
     def keys(self, s: Scene) -> set[str]:
         keys: set[str] = set()
@@ -125,13 +133,17 @@ class Bot:
                 want, self.changing = nxt, True
             else:
                 blocker = s.nearest(nxt, self.gap_ahead, self.gap_behind)
-                keys.add("down" if blocker is not None and blocker > -3 else "up")
+                keys.add("down" if blocker is not None and blocker > 0 else "up")
         else:
             self.changing = False
         ahead = [d for ln in {lane, want} if (d := s.nearest(ln, self.follow, 0.0)) is not None]
         if ahead and min(ahead) > 0:
             keys.discard("up")
             keys.add("down")
+        if "down" in keys and self.net <= -self.speed_room:
+            keys.discard("down")
+        if "up" in keys and self.net >= self.speed_room:
+            keys.discard("up")
         if s.path_col is not None:
             err = (s.lanes[want] - s.path_col) / s.ppm
             if err > self.tolerance:
@@ -141,11 +153,15 @@ class Bot:
         return keys
 
 
-def drive(win: XWindow, proc: subprocess.Popen, look: float = 8.0, period: float = 0.02) -> None:
+def drive(win: XWindow, proc: subprocess.Popen, look: float = 8.0, period: float = 0.02,
+          trace: Any = None, fps: float = 10.0) -> None:
     """Drive until the recorder ends; a still picture for 0.6 s means an episode waits for a key."""
     bot = Bot(look=look)
-    last, still_since = None, time.time()
+    last, still_since, tick = None, time.time(), time.time()
     while proc.poll() is None:
+        now = time.time()
+        bot.net += (int("up" in win.held) - int("down" in win.held)) * (now - tick) * fps
+        tick = now
         try:
             img = win.grab()
         except Exception:  # noqa: BLE001 - the window closed between two looks
@@ -155,19 +171,24 @@ def drive(win: XWindow, proc: subprocess.Popen, look: float = 8.0, period: float
             if time.time() - still_since > 0.6:
                 win.hold(set())
                 win.tap("up")  # the episode waits for a first key
-                bot.changing, still_since = False, time.time()
+                bot.new_episode()
+                still_since = time.time()
         else:
             still_since = time.time()
         last = img
         if s is not None:
-            win.hold(bot.keys(s))
+            keys = bot.keys(s)
+            if trace is not None:
+                print(f"{time.time():.2f} lane {s.lane} target {s.target} car {s.car[1]:.1f} lanes "
+                      f"{[round(c, 1) for c in s.lanes]} path {s.path_col} keys {sorted(keys)}", file=trace)
+            win.hold(keys)
         time.sleep(period)
     win.hold(set())
 
 
 def main(argv: list[str]) -> int:
     opts = {"episodes": "10", "fps": "10", "controls": "assisted", "display": ":97", "seed": "0",
-            "look": "8", "cars": "[0,5]"}
+            "look": "8", "cars": "[0,5]", "trace": ""}
     for a in argv:
         key, _, value = a.partition("=")
         if key not in opts:
@@ -190,7 +211,8 @@ def main(argv: list[str]) -> int:
             proc.kill()
             print(proc.communicate()[0][-3000:], file=sys.stderr)
             raise
-        drive(win, proc, look=float(opts["look"]))
+        trace = open(opts["trace"], "w") if opts["trace"] else None  # noqa: SIM115
+        drive(win, proc, look=float(opts["look"]), trace=trace, fps=float(opts["fps"]))
         text = proc.communicate()[0]
         print(text.strip().splitlines()[-3:] and "\n".join(text.strip().splitlines()[-3:]))
         print(f"window_bot: fps={opts['fps']} controls={opts['controls']} dataset={out}")
