@@ -187,7 +187,7 @@ def drive(win: XWindow, proc: subprocess.Popen, look: float = 8.0, period: float
 
 
 def main(argv: list[str]) -> int:
-    opts = {"episodes": "10", "fps": "10", "controls": "assisted", "display": ":97", "seed": "0",
+    opts = {"episodes": "10", "fps": "10", "controls": "assisted", "seed": "0",
             "look": "8", "cars": "[0,5]", "trace": ""}
     for a in argv:
         key, _, value = a.partition("=")
@@ -196,17 +196,17 @@ def main(argv: list[str]) -> int:
             return 2
         opts[key] = value
     out = Path(tempfile.mkdtemp(prefix="window_bot_")) / "demos"
-    xvfb = start_xvfb(opts["display"])
+    xvfb, display = start_xvfb()
     try:
         cmd = [sys.executable, "-m", "memrl.record", "demos=human", f"episodes={opts['episodes']}",
                f"seed={opts['seed']}", "env.initial_lane=non_goal", f"env.vehicles_count={opts['cars']}",
                f"demos.policy.fps={opts['fps']}", f"demos.policy.controls={opts['controls']}",
                "demos.person=window_bot", f"out={out}", "progress=false",
                f"hydra.run.dir={out.parent / 'hydra'}"]
-        proc = subprocess.Popen(cmd, env={**__import__("os").environ, "DISPLAY": opts["display"]},
+        proc = subprocess.Popen(cmd, env={**__import__("os").environ, "DISPLAY": display},
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
-            win = XWindow(opts["display"], timeout=180)
+            win = XWindow(display, timeout=180)
         except TimeoutError:
             proc.kill()
             print(proc.communicate()[0][-3000:], file=sys.stderr)

@@ -77,15 +77,24 @@ class XWindow:
         self._xdotool("key", KEYSYMS.get(key, key), check=False)
 
 
-def start_xvfb(display: str, size: str = "1366x768x24", timeout: float = 10.0) -> subprocess.Popen:
-    """An Xvfb server on ``display``; the caller terminates it."""
-    proc = subprocess.Popen(["Xvfb", display, "-screen", "0", size, "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    sock = f"/tmp/.X11-unix/X{display.lstrip(':')}"
-    deadline = time.time() + timeout
-    while not os.path.exists(sock):
-        if proc.poll() is not None or time.time() > deadline:
-            proc.kill()
-            raise RuntimeError(f"Xvfb did not start on {display}")
-        time.sleep(0.05)
-    return proc
+def start_xvfb(size: str = "1366x768x24", timeout: float = 20.0) -> tuple[subprocess.Popen, str]:
+    """An Xvfb server on a display number it finds free itself (``-displayfd``: no clash with
+    servers of other users, whose abstract sockets a chosen number could meet); returns the
+    process (the caller terminates it) and its display (``:N``)."""
+    read, write = os.pipe()
+    proc = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", size, "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, pass_fds=(write,))
+    os.close(write)
+    deadline, text = time.time() + timeout, b""
+    try:
+        while not text.endswith(b"\n"):
+            if proc.poll() is not None or time.time() > deadline:
+                proc.kill()
+                raise RuntimeError("Xvfb did not start")
+            chunk = os.read(read, 16)
+            if not chunk:
+                time.sleep(0.05)
+            text += chunk
+    finally:
+        os.close(read)
+    return proc, f":{int(text)}"
