@@ -47,9 +47,10 @@ def _figures(stats: dict[str, Any]) -> str:
             f"goal {stats['goal']}/{n}, mean return {stats['mean_return']:.1f}")
 
 
-def resume_command(folder: Path | str) -> str:
-    """The command that goes on with a stopped recording."""
-    return f"python -m memrl.record resume={folder}"
+def resume_command(folder: Path | str, source: str = "scripted") -> str:
+    """The command that goes on with a stopped recording (``demos=`` when not the default)."""
+    demos = "" if source == "scripted" else f"demos={source} "
+    return f"python -m memrl.record {demos}resume={folder}"
 
 
 def record(cfg: DictConfig) -> RecordSummary:
@@ -75,7 +76,8 @@ def record(cfg: DictConfig) -> RecordSummary:
     summary = RecordSummary(path, stats["recorded"], stats["kept"], time.perf_counter() - start,
                             size, rec.stopped_early)
     if rec.stopped_early:
-        raise Stopped(_stopped_line(rec, summary, out, planned), rec.interrupted or SIGINT_EXIT)
+        raise Stopped(_stopped_line(rec, summary, out, planned, str(cfg.demos.source)),
+                      rec.interrupted or SIGINT_EXIT)
     _print(summary, cfg.keep)
     if guard.pending is not None:  # a signal during the save: the dataset is whole; stop now
         raise Stopped(f"interrupted during the save; the dataset is complete: {path}",
@@ -113,7 +115,7 @@ def _record(cfg: DictConfig, guard: SignalGuard) -> tuple[Path | None, Recording
     return path, rec, out, int(kw["episodes"])
 
 
-def _stopped_line(rec: Recording, summary: RecordSummary, out: Path, planned: int) -> str:
+def _stopped_line(rec: Recording, summary: RecordSummary, out: Path, planned: int, source: str) -> str:
     how = {None: "stopped", SIGINT_EXIT: "interrupted (SIGINT)", SIGTERM_EXIT: "interrupted (SIGTERM)"}
     what = how.get(rec.interrupted, "stopped")
     if not rec.episodes:
@@ -122,7 +124,7 @@ def _stopped_line(rec: Recording, summary: RecordSummary, out: Path, planned: in
     saved = (f"{kept['episodes']} episodes kept ({kept['transitions']} transitions) saved in {out}"
              if summary.path is not None else f"no episode kept yet; the plan is saved in {out}")
     return (f"{what} after episode {rec.next_episode} of {planned}: {saved}; "
-            f"go on with: {resume_command(out)}")
+            f"go on with: {resume_command(out, source)}")
 
 
 def _print(summary: RecordSummary, keep: str) -> None:

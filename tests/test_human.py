@@ -224,3 +224,29 @@ def test_person_is_in_the_dataset_and_training_logs_what_it_loaded(pg, compose_c
         td = prior_knowledge(train_cfg)
     assert td.shape[0] == summary.kept["transitions"]
     assert f"prior knowledge: {out.resolve()} ({td.shape[0]} transitions)" in caplog.text
+
+
+def test_human_recording_goes_on_in_a_second_sitting(pg, compose_cfg, tmp_path, monkeypatch):
+    from memrl.data.demos import read_metadata
+    from memrl.stop import Stopped
+
+    out = tmp_path / "ann"
+    args = ["demos=human", "demos.policy.fps=0", "demos.policy.wait_for_start=false"]
+    real, calls = KeyboardDriver.act, {"n": 0}
+
+    def act(self, env, pixels):  # Esc in the second episode of the first sitting
+        calls["n"] += 1
+        if calls["n"] == 25:
+            pg.event.post(pg.event.Event(pg.KEYDOWN, key=pg.K_ESCAPE))
+        return real(self, env, pixels)
+
+    monkeypatch.setattr(KeyboardDriver, "act", act)
+    with pytest.raises(Stopped) as stop:
+        record(compose_cfg("record", [*args, "demos.person=ann", "episodes=2", "keep=all",
+                                      "env.duration=20", f"out={out}", "progress=false"]))
+    assert str(stop.value).endswith(f"go on with: python -m memrl.record demos=human resume={out}")
+    monkeypatch.setattr(KeyboardDriver, "act", real)
+    summary = record(compose_cfg("record", [*args, f"resume={out}", "progress=false"]))
+    meta = read_metadata(out)
+    assert summary.recorded["episodes"] == 2 and meta["person"] == "ann"
+    assert [e["seed"] for e in meta["episodes"]] == [0, 1] and load_demos(out).shape[0] == 40

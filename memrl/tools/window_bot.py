@@ -109,9 +109,9 @@ class Bot:
     """[m] ahead: where the path is compared with the lane wanted."""
     tolerance: float = 0.3
     """[m] of that comparison that needs no steering."""
-    gap_ahead: float = 14.0
-    gap_behind: float = 10.0
-    follow: float = 16.0
+    gap_ahead: float = 16.0
+    gap_behind: float = 16.0
+    follow: float = 22.0
     """[m]: slow down when a car ahead in the lane is nearer."""
     speed_room: float = 40.0
     """Speed steps it may add or take away from an episode's start speed (it counts what it pressed)."""
