@@ -110,9 +110,11 @@ class Bot:
     tolerance: float = 0.3
     """[m] of that comparison that needs no steering."""
     gap_ahead: float = 16.0
-    gap_behind: float = 16.0
+    gap_behind: float = 20.0
     follow: float = 22.0
     """[m]: slow down when a car ahead in the lane is nearer."""
+    pushed: float = 9.0
+    """[m]: speed up when a car behind in the lane is nearer (and none is ahead)."""
     speed_room: float = 40.0
     """Speed steps it may add or take away from an episode's start speed (it counts what it pressed)."""
     changing: bool = False
@@ -137,9 +139,13 @@ class Bot:
         else:
             self.changing = False
         ahead = [d for ln in {lane, want} if (d := s.nearest(ln, self.follow, 0.0)) is not None]
+        behind = [d for ln in {lane, want} if (d := s.nearest(ln, 0.0, self.pushed)) is not None]
         if ahead and min(ahead) > 0:
             keys.discard("up")
             keys.add("down")
+        elif behind:  # a faster car closing from behind: get out of its way
+            keys.discard("down")
+            keys.add("up")
         if "down" in keys and self.net <= -self.speed_room:
             keys.discard("down")
         if "up" in keys and self.net >= self.speed_room:
