@@ -14,6 +14,7 @@ drives it, and prints the recorder's summary (``kept (stable) N episodes``).
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -209,7 +210,7 @@ def main(argv: list[str]) -> int:
                f"demos.policy.fps={opts['fps']}", f"demos.policy.controls={opts['controls']}",
                "demos.person=window_bot", f"out={out}", "progress=false",
                f"hydra.run.dir={out.parent / 'hydra'}"]
-        proc = subprocess.Popen(cmd, env={**__import__("os").environ, "DISPLAY": display},
+        proc = subprocess.Popen(cmd, env={**os.environ, "DISPLAY": display},
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
             win = XWindow(display, timeout=180)
@@ -220,7 +221,7 @@ def main(argv: list[str]) -> int:
         trace = open(opts["trace"], "w") if opts["trace"] else None  # noqa: SIM115
         drive(win, proc, look=float(opts["look"]), trace=trace, fps=float(opts["fps"]))
         text = proc.communicate()[0]
-        print(text.strip().splitlines()[-3:] and "\n".join(text.strip().splitlines()[-3:]))
+        print("\n".join(text.strip().splitlines()[-3:]))  # the recorder's summary
         print(f"window_bot: fps={opts['fps']} controls={opts['controls']} dataset={out}")
         return proc.returncode or 0
     finally:
