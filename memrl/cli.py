@@ -157,6 +157,7 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     from hydra.types import RunMode
 
     from memrl.hydra_callbacks import ERROR_FILE
+    from memrl.stop import Stopped
 
     hydra_cfg = HydraConfig.get()
     out = Path(hydra_cfg.runtime.output_dir)
@@ -167,6 +168,10 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     except signals.Interrupted as stop:
         print(stopped_line(stop, cfg, out, list(hydra_cfg.overrides.task)), file=sys.stderr)
         sys.exit(stop.exit_status)
+    except Stopped as err:  # ended early on request (Esc, Ctrl-C, SIGTERM): one line, its status
+        remove_if_bare(out)
+        print(str(err), file=sys.stderr)
+        sys.exit(err.status)
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             if is_user_error(err):

@@ -93,3 +93,16 @@ def load_run_config(path: Any) -> Any:
     if not isinstance(loaded, DictConfig):
         raise UserError(f"{path}: unreadable run config (not a mapping of keys)")
     return loaded
+
+
+def instantiate_checked(node: object) -> object:
+    """Hydra's ``instantiate``, but a :class:`UserError` raised by the object's constructor
+    comes out as itself (one line), not wrapped in Hydra's "Error in call to target ..."."""
+    from hydra.utils import instantiate
+
+    try:
+        return instantiate(node)
+    except Exception as err:
+        if isinstance(err.__cause__, UserError):
+            raise err.__cause__ from None
+        raise

@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import hydra
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
+from memrl.errors import instantiate_checked
 from memrl.schemas import check_evaluate
 
 if TYPE_CHECKING:  # the evaluation stack (torch) loads on the first run, not for --help
@@ -49,17 +49,49 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
 
     check_evaluate(cfg)
     protocol = check_protocol(cfg.protocol)
-    source: PolicySource = instantiate(cfg.policy)
+    source: PolicySource = instantiate_checked(cfg.policy)  # type: ignore[assignment]
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
+    candidates = source.candidates()
+    resume = resumed(cfg, candidates) if cfg.get("resume") is not None else None
+    if resume is not None:
+        protocol = check_protocol(resume.protocol)  # the stopped evaluation's scenes
     results = []
-    for cand in source.candidates():
+    for cand in candidates:
         cand.meta["policy_config"] = policy_cfg
         result = evaluate_candidate(
-            cand, protocol, env_cfg=cfg.env, out_dir=Path(out_dir or cfg.paths.output_dir),
-            workers=workers_of(cfg), batch=int(cfg.batch), progress=bool(cfg.progress))
+            cand, protocol, env_cfg=cfg.env,
+            out_dir=None if resume is not None else Path(out_dir or cfg.paths.output_dir),
+            workers=workers_of(cfg), batch=int(cfg.batch), progress=bool(cfg.progress),
+            resume=resume)
         print(score_line(result), f"-> {result.path}")
         results.append(result)
     return results
+
+
+def resumed(cfg: DictConfig, candidates: list) -> EvalResult:
+    """The stopped evaluation in ``cfg.resume``, checked to be this policy's (one candidate,
+    the same name and unit, e.g. the same person)."""
+    from memrl.errors import UserError
+    from memrl.evaluation.results import EVAL_JSON, read_result
+    from memrl.evaluation.session import is_complete
+
+    folder = Path(str(cfg.resume))
+    if not (folder / EVAL_JSON).is_file():
+        raise UserError(f"resume: no {EVAL_JSON} in {folder} (give the folder a stopped evaluation printed)")
+    try:
+        old = read_result(folder)
+    except (ValueError, KeyError, TypeError) as err:
+        raise UserError(f"resume: {folder / EVAL_JSON}: unreadable ({err})") from None
+    if len(candidates) != 1:
+        raise UserError(f"resume: {folder} is one evaluation; this policy gives {len(candidates)}")
+    cand = candidates[0]
+    unit = str(cand.meta.get("unit", cand.name))
+    if (old.name, old.unit) != (cand.name, unit):
+        raise UserError(f"resume: {folder} is the evaluation of {old.name} [{old.unit}], not "
+                        f"{cand.name} [{unit}]; give the same policy (and policy.person)")
+    if is_complete(old):
+        raise UserError(f"resume: {folder} is complete ({len(old.records())} episodes); nothing to do")
+    return old
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")

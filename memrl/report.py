@@ -157,6 +157,24 @@ def stats_config(cfg: DictConfig) -> StatsConfig:
                        tuple(str(k) for k in cfg.row_ignore))
 
 
+def planned_episodes(result: EvalResult) -> int:
+    return int(result.protocol.get("episodes", 0)) * len(result.protocol.get("initial_lanes", []))
+
+
+def partial_note(partial: list[EvalResult]) -> str:
+    """The evaluations left out of the table because their protocol is not complete."""
+    if not partial:
+        return ""
+    lines = ["", "### Partial evaluations (not counted in the table)", "",
+             "| method | unit | episodes | folder |", "|---|---|---|---|"]
+    for r in partial:
+        done = sum(s.episodes for s in r.scores.values())
+        lines.append(f"| {r.name} | {r.unit} | {done} of {planned_episodes(r)} (partial) | {r.path} |")
+    lines += ["", "Go on with one: python -m memrl.evaluate policy=human policy.person=<name> "
+              "resume=<folder>."]
+    return "\n".join(lines) + "\n"
+
+
 def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     """Build Table III (markdown + CSV), the pairwise differences, Fig. 5 and Fig. 7.
 
@@ -167,21 +185,27 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     from memrl.evaluation import figures, stats, tables
     from memrl.evaluation.crashes import crash_section
     from memrl.evaluation.results import find_results
+    from memrl.evaluation.session import is_complete
 
     check_report(cfg)
     out = Path(out_dir or cfg.paths.output_dir)
     if cfg.evaluate_missing:
         evaluate_missing(cfg)
-    results = find_results([str(p) for p in cfg.runs])
+    found = find_results([str(p) for p in cfg.runs])
+    results = [r for r in found if is_complete(r)]
+    partial = [r for r in found if not is_complete(r)]
     if not results:
-        raise config_error("runs", f"no evaluation (eval.json) under {', '.join(map(str, cfg.runs))}; "
+        what = (f"only partial evaluations ({', '.join(str(r.path) for r in partial)}); finish them "
+                "with python -m memrl.evaluate ... resume=<folder>" if partial else
+                "no evaluation (eval.json)")
+        raise config_error("runs", f"{what} under {', '.join(map(str, cfg.runs))}; "
                            "run python -m memrl.evaluate first or set evaluate_missing=true")
     out.mkdir(parents=True, exist_ok=True)
     pid = stats.check_protocols(results)
     scfg = stats_config(cfg)
     rows = stats.table(results, scfg)
     diffs = stats.differences(results, [list(p) for p in cfg.comparisons], scfg)
-    md = tables.markdown(rows, diffs, scfg.confidence)
+    md = tables.markdown(rows, diffs, scfg.confidence) + partial_note(partial)
     md += "\n" + "\n".join(crash_section([results], scfg))
     files = ReportFiles(out / "table3.md", out / "table3.csv", out / "differences.csv",
                         out / "report.json", markdown=md)
@@ -203,6 +227,9 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
                          "excludes_zero": d.cell.excludes_zero(), "p_improvement": d.p_improvement,
                          "p_low": d.p_low, "p_high": d.p_high} for d in diffs],
         "sources": [str(r.path) for r in results],
+        "partial": [{"path": str(r.path), "name": r.name, "unit": r.unit,
+                     "episodes": sum(s.episodes for s in r.scores.values()),
+                     "planned": planned_episodes(r)} for r in partial],
         "files": {k: [str(p) for p in v] if isinstance(v, list) else (str(v) if v else None)
                   for k, v in asdict(files).items() if k != "markdown"},
         "config": _plain(cfg, out),

@@ -230,6 +230,8 @@ class RecordSchema:
     """Probability per step of a random action instead of the driver's."""
     out: str = MISSING
     """Dataset folder."""
+    resume: str | None = None
+    """Folder of a stopped recording to go on with (its plan replaces episodes, seed, keep, ...)."""
     overwrite: bool = MISSING
     example: bool = MISSING
     recipe: DemoRecipe = field(default_factory=DemoRecipe)
@@ -255,6 +257,8 @@ def check_record(cfg: DictConfig) -> None:
             raise config_error("example", "the example dataset is made by the scripted driver "
                                f"(demos=scripted), not demos={cfg.demos.source}")
         check_writable(cfg.paths.data_dir, "paths.data_dir")
+    elif cfg.get("resume") is not None:
+        check_writable(Path(str(cfg.resume)), "resume")
     else:
         out = Path(str(cfg.out))
         if out.exists() and not cfg.overwrite:
@@ -277,6 +281,8 @@ class EvaluateSchema:
     """Episodes stepped in lockstep per process."""
     progress: bool = MISSING
     debug: bool = MISSING
+    resume: str | None = None
+    """Folder of a stopped evaluation (a person's): drive its missing episodes (same scenes)."""
     env: Any = MISSING
     protocol: Any = MISSING
     policy: Any = MISSING

@@ -36,7 +36,9 @@ def prior_knowledge(cfg: DictConfig) -> TensorDictBase:
 
         path = ensure_example_demos(cfg.env, Path(cfg.paths.data_dir), recipe,
                                     progress=bool(cfg.progress))
-    return demos.load_demos(Path(path), env_cfg=cfg.env)
+    td = demos.load_demos(Path(path), env_cfg=cfg.env)
+    log.info("prior knowledge: %s (%d transitions)", Path(path).resolve(), td.shape[0])
+    return td
 
 
 def remove_new_entries(folder: Path, before: set[Path] | None) -> None:

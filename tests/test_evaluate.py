@@ -275,6 +275,7 @@ def pg(monkeypatch):
 
 def test_human_at_the_keyboard_fills_the_human_row(pg, compose_cfg, tmp_path):
     cfg = compose_cfg("evaluate", ["policy=human", "policy.person=ann", "policy.driver.fps=0",
+                                   "policy.driver.controls=literal",
                                    "policy.driver.wait_for_start=false", *SMALL, "workers=2"])
     pg.event.post(pg.event.Event(pg.KEYDOWN, key=pg.K_LEFT))  # held: the car turns into a wall
     [result] = evaluate(cfg, out_dir=tmp_path)

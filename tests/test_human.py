@@ -10,6 +10,7 @@ from memrl.data.demos import load_demos
 from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import IDLE, action_index
 from memrl.modules.human import KeyboardDriver, action_from_keys
+from memrl.modules.human_controls import assisted_action
 from memrl.modules.policy import PolicyModule
 from memrl.record import record
 
@@ -50,7 +51,7 @@ def test_arrow_keys_map_to_the_nine_actions(held, signs):
 
 def test_synthetic_key_presses_are_the_executed_actions(pg):
     env = make_env({"vehicles_count": 0, "target_lane": 1}, seed=0, render_mode="rgb_array")
-    driver = KeyboardDriver(fps=0, wait_for_start=False)
+    driver = KeyboardDriver(fps=0, wait_for_start=False, controls="literal")
     module = PolicyModule(driver, unwrap(env))
     td = env.reset()
     car = unwrap(env).vehicle
@@ -62,7 +63,7 @@ def test_synthetic_key_presses_are_the_executed_actions(pg):
         (lambda: release(pg, pg.K_DOWN, pg.K_RIGHT), IDLE),
         (lambda: (press(pg, pg.K_LEFT), release(pg, pg.K_LEFT)), action_index(0, -1)),  # a tap
         (lambda: None, IDLE),  # the tap counted once
-        (lambda: press(pg, pg.K_a, pg.K_SPACE), IDLE),  # other keys do nothing
+        (lambda: press(pg, pg.K_a, pg.K_z), IDLE),  # other keys do nothing
     ]
     taken = []
     for events, expected in script:
@@ -78,8 +79,9 @@ def test_synthetic_key_presses_are_the_executed_actions(pg):
     # the window shows the scene and, beside it, the agent's newest frame enlarged 4x
     screen = pg.surfarray.array3d(pg.display.get_surface()).transpose(1, 0, 2)  # (H, W, 3)
     scene_w = int(round(unwrap(env).cfg.scene.width * driver.scene_scale))
-    view = screen[10:10 + 336, 20 + scene_w:20 + scene_w + 336, 0]
-    assert view.std() > 5 and screen[10:700, 10:10 + scene_w].std() > 5
+    view = screen[10:10 + 252, 20 + scene_w:20 + scene_w + 252, 0]
+    assert view.std() > 5 and screen[10:600, 10:10 + scene_w].std() > 5
+    assert screen.shape[0] <= 700 and screen.shape[1] <= 1300  # fits a 1366x768 screen
     driver.close()
 
 
@@ -108,8 +110,8 @@ def test_episode_waits_for_a_first_key_when_asked(pg):
 def test_record_command_stores_the_keyboard_actions(pg, compose_cfg, tmp_path):
     out = tmp_path / "human"
     cfg = compose_cfg("record", ["demos=human", "demos.policy.fps=0", "demos.policy.wait_for_start=false",
-                                 "episodes=2", "keep=all", "env.vehicles_count=0", f"out={out}",
-                                 "progress=false"])
+                                 "demos.policy.controls=literal", "episodes=2", "keep=all",
+                                 "env.vehicles_count=0", f"out={out}", "progress=false"])
     press(pg, pg.K_RIGHT)  # held for the whole recording: the car turns into the right wall
     summary = record(cfg)
     assert summary.recorded["episodes"] == 2 and summary.recorded["survival"] == 0
@@ -122,8 +124,11 @@ def test_escape_stops_and_drops_the_unfinished_episode(pg, compose_cfg, tmp_path
     cfg = compose_cfg("record", ["demos=human", "demos.policy.fps=0", "demos.policy.wait_for_start=false",
                                  "episodes=3", "keep=all", f"out={tmp_path / 'none'}", "progress=false"])
     press(pg, pg.K_UP, pg.K_ESCAPE)
-    summary = record(cfg)
-    assert summary.stopped_early and summary.path is None and summary.recorded["episodes"] == 0
+    from memrl.stop import Stopped
+
+    with pytest.raises(Stopped, match="before any episode finished; nothing saved") as stop:
+        record(cfg)
+    assert stop.value.status == 130
     assert not (tmp_path / "none").exists()
 
 
@@ -145,3 +150,103 @@ def test_steps_are_paced_at_the_configured_rate(pg, monkeypatch):
     driver.close()
     with pytest.raises(ValueError, match="fps"):
         KeyboardDriver(fps=-1)
+
+
+def test_assisted_keys_turn_then_straighten_without_overshoot(pg):
+    env = make_env({"vehicles_count": 0, "target_lane": 1, "initial_lane": "non_goal"}, seed=0,
+                   render_mode="rgb_array")
+    driver = KeyboardDriver(fps=0, wait_for_start=False)
+    module = PolicyModule(driver, unwrap(env))
+    td = env.reset()
+    car = unwrap(env).vehicle
+    press(pg, pg.K_RIGHT)
+    headings = []
+    for step in range(60):
+        if step == 15:
+            release(pg, pg.K_RIGHT)
+        held = {"right"} if step < 15 else set()
+        expected = assisted_action(held, car.heading, car.curvature, car.speed,
+                                   curvature_step=0.01, dt=0.1)
+        td = module(td)
+        assert int(td["action"]) == expected
+        td = env.step(td)["next"]
+        headings.append(car.heading)
+    assert max(headings) == pytest.approx(0.12, abs=0.02)  # curved right up to turn_heading
+    assert abs(headings[-1]) < 0.005 and car.curvature == 0  # released: straight again
+    assert min(headings) > -0.005  # without overshooting to the other side
+    driver.close()
+
+
+def test_assisted_speed_changes_only_while_held():
+    held_up = assisted_action({"up"}, 0.0, 0.0, 10.0, curvature_step=0.01)
+    assert held_up == action_index(1, 0)
+    assert assisted_action(set(), 0.0, 0.0, 10.0, curvature_step=0.01) == IDLE
+    assert assisted_action({"down", "left"}, 0.0, 0.0, 10.0, curvature_step=0.01) == action_index(-1, -1)
+
+
+def test_pause_key_holds_the_step(pg):
+    env = make_env({"vehicles_count": 0}, seed=0, render_mode="rgb_array")
+    driver = KeyboardDriver(fps=0, wait_for_start=False)
+    td = env.reset()
+    driver.act(unwrap(env), td["pixels"].numpy())  # opens the window
+    press(pg, pg.K_p)
+    pg.event.post(pg.event.Event(pg.KEYDOWN, key=pg.K_ESCAPE))  # Esc still stops while paused
+    from memrl.modules.policy import StopRecording
+
+    with pytest.raises(StopRecording):
+        driver.act(unwrap(env), td["pixels"].numpy())
+    assert driver.paused
+    driver.close()
+
+
+def test_no_display_is_refused_in_one_line(monkeypatch):
+    from memrl.modules.display import NoDisplayError
+
+    monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(NoDisplayError, match="xvfb-run"):
+        KeyboardDriver()
+
+
+def test_person_is_in_the_dataset_and_training_logs_what_it_loaded(pg, compose_cfg, tmp_path, caplog):
+    from memrl.data.demos import read_metadata
+    from memrl.train import prior_knowledge
+
+    out = tmp_path / "ann"
+    cfg = compose_cfg("record", ["demos=human", "demos.person=ann", "demos.policy.fps=0",
+                                 "demos.policy.wait_for_start=false", "episodes=1", "keep=all",
+                                 "env.duration=20", f"out={out}", "progress=false"])
+    summary = record(cfg)
+    assert read_metadata(out)["person"] == "ann"
+    train_cfg = compose_cfg("train", ["+mode=A", f"mode.demos_path={out}", "env.duration=20"])
+    with caplog.at_level("INFO", logger="memrl.train"):
+        td = prior_knowledge(train_cfg)
+    assert td.shape[0] == summary.kept["transitions"]
+    assert f"prior knowledge: {out.resolve()} ({td.shape[0]} transitions)" in caplog.text
+
+
+def test_human_recording_goes_on_in_a_second_sitting(pg, compose_cfg, tmp_path, monkeypatch):
+    from memrl.data.demos import read_metadata
+    from memrl.stop import Stopped
+
+    out = tmp_path / "ann"
+    args = ["demos=human", "demos.policy.fps=0", "demos.policy.wait_for_start=false"]
+    real, calls = KeyboardDriver.act, {"n": 0}
+
+    def act(self, env, pixels):  # Esc in the second episode of the first sitting
+        calls["n"] += 1
+        if calls["n"] == 25:
+            pg.event.post(pg.event.Event(pg.KEYDOWN, key=pg.K_ESCAPE))
+        return real(self, env, pixels)
+
+    monkeypatch.setattr(KeyboardDriver, "act", act)
+    with pytest.raises(Stopped) as stop:
+        record(compose_cfg("record", [*args, "demos.person=ann", "episodes=2", "keep=all",
+                                      "env.duration=20", f"out={out}", "progress=false"]))
+    assert str(stop.value).endswith(f"go on with: python -m memrl.record demos=human resume={out}")
+    monkeypatch.setattr(KeyboardDriver, "act", real)
+    summary = record(compose_cfg("record", [*args, f"resume={out}", "progress=false"]))
+    meta = read_metadata(out)
+    assert summary.recorded["episodes"] == 2 and meta["person"] == "ann"
+    assert [e["seed"] for e in meta["episodes"]] == [0, 1] and load_demos(out).shape[0] == 40

@@ -6,6 +6,7 @@ what training sees. Episode ``i`` is reset with seed ``seed + i``.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from collections.abc import Iterable, Mapping
@@ -19,11 +20,13 @@ from tqdm import tqdm
 
 from memrl.data.demos import DemoDatasetError, EnvCfg, example_demos_path, load_demos, save_demos
 from memrl.data.recipe import recipe_error, recipe_values
+from memrl.data.sittings import Plan, clean_stale, write_progress
 from memrl.data.transitions import to_transitions
 from memrl.envs.config import LaneChangeConfig
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
 from memrl.modules.policy import DrivingPolicy, FrameStack, PerturbedPolicy, PolicyModule, StopRecording
+from memrl.stop import SignalGuard, Terminated, exit_status_of
 
 log = logging.getLogger(__name__)
 
@@ -74,10 +77,18 @@ class Recording:
     """Indices into ``episodes`` of the kept episodes."""
     transitions: list[TensorDict] = field(default_factory=list)
     stopped_early: bool = False
+    interrupted: int | None = None
+    """Exit status of the signal that stopped it (130 SIGINT, 143 SIGTERM); None: none did."""
+    next_episode: int = 0
+    """Index of the first episode not finished (where a later sitting goes on)."""
 
     def stats(self) -> dict[str, Any]:
-        return {"recorded": summarize(self.episodes),
-                "kept": summarize([self.episodes[i] for i in self.kept])}
+        """Counts over the recorded and the kept episodes. ``kept.transitions`` counts the
+        transitions stored (``tail_steps`` and noise steps cut), ``kept.steps`` the episodes' steps."""
+        kept = summarize([self.episodes[i] for i in self.kept])
+        kept["steps"] = kept["transitions"]
+        kept["transitions"] = sum(int(t.shape[0]) for t in self.transitions)
+        return {"recorded": summarize(self.episodes), "kept": kept}
 
 
 def reached_index(rollout: TensorDict) -> int | None:
@@ -89,8 +100,8 @@ def reached_index(rollout: TensorDict) -> int | None:
 def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, seed: int = 0,
                     keep_stable: bool = True, tail_steps: int | None = None,
                     action_noise: float = 0.0, frame_stack: int = 4, render: bool = False,
-                    progress: bool = False) -> Recording:
-    """Run ``episodes`` episodes of ``policy`` and keep the transitions of the chosen ones.
+                    progress: bool = False, start: int = 0, kept_before: int = 0) -> Recording:
+    """Run episodes ``start .. episodes - 1`` of ``policy`` and keep the transitions of the chosen ones.
 
     Args:
         env_cfg: lane-change env config.
@@ -112,23 +123,25 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
         render: build the env with ``render_mode='rgb_array'`` (for a policy that shows the
             scene, like the keyboard recorder).
         progress: show a progress bar.
+        start: first episode index (a later sitting of a stopped recording).
+        kept_before: episodes kept in earlier sittings (for the driver's window).
+
+    Esc (:class:`StopRecording`), Ctrl-C and SIGTERM (:class:`memrl.stop.Terminated`) end it
+    early: the episode under way is dropped, the finished ones are returned.
     """
     env = make_env(env_config_values(env_cfg), frame_stack=frame_stack,
                    render_mode="rgb_array" if render else None)
     noisy = PerturbedPolicy(policy, action_noise, seed=seed) if action_noise > 0 else None
     module = PolicyModule(noisy or policy, unwrap(env))
     duration = unwrap(env).cfg.duration
-    rec = Recording()
+    rec = Recording(next_episode=start)
     try:
-        for i in tqdm(range(episodes), desc="record", unit="ep", disable=not progress):
+        for i in tqdm(range(start, episodes), desc="record", unit="ep", disable=not progress):
+            if hasattr(policy, "progress"):
+                policy.progress = (i + 1, episodes, kept_before + len(rec.kept))
             td = env.reset(seed=seed + i)
-            try:
-                rollout = env.rollout(duration, module, auto_reset=False, tensordict=td,
-                                      break_when_any_done=True)
-            except StopRecording:
-                log.info("recording stopped after %d finished episodes", i)
-                rec.stopped_early = True
-                break
+            rollout = env.rollout(duration, module, auto_reset=False, tensordict=td,
+                                  break_when_any_done=True)
             last = rollout[-1]["next"]
             perturbed = torch.tensor(noisy.perturbed if noisy else [], dtype=torch.bool)
             stats = EpisodeStats(
@@ -137,14 +150,24 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
                 collided=bool(last["collided"]), reached_target=bool(last["reached_target"]),
                 perturbed=int(perturbed.sum()),
             )
-            rec.episodes.append(stats)
+            stored = None
             if stats.stable or not keep_stable:
-                rec.kept.append(i)
                 if tail_steps is not None and (reached := reached_index(rollout)) is not None:
                     rollout = rollout[:reached + 1 + tail_steps]
                 if noisy is not None:  # store only the steps of the policy's own action
                     rollout = rollout[~perturbed[:rollout.shape[0]]]
-                rec.transitions.append(to_transitions(rollout, is_demo=True))
+                stored = to_transitions(rollout, is_demo=True)
+            rec.episodes.append(stats)  # an episode counts once all of it is in hand
+            if stored is not None:
+                rec.kept.append(len(rec.episodes) - 1)
+                rec.transitions.append(stored)
+            rec.next_episode = i + 1
+    except StopRecording:
+        log.info("recording stopped after %d finished episodes", len(rec.episodes))
+        rec.stopped_early = True
+    except (KeyboardInterrupt, Terminated) as err:
+        log.info("recording interrupted after %d finished episodes", len(rec.episodes))
+        rec.stopped_early, rec.interrupted = True, exit_status_of(err)
     finally:
         env.close()
         close = getattr(policy, "close", None)
@@ -194,7 +217,8 @@ def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.Pat
                       tail_steps: int | None = None, action_noise: float = 0.0, source: str,
                       frame_stack: int = 4, render: bool = False, progress: bool = False,
                       overwrite: bool = False, extra: Mapping[str, Any] | None = None,
-                      ) -> tuple[Path | None, Recording]:
+                      person: str | None = None, resume: tuple[Plan, Any] | None = None,
+                      guard: SignalGuard | None = None) -> tuple[Path | None, Recording]:
     """Record episodes and save the kept ones as a dataset (None when nothing was kept).
 
     Args:
@@ -204,18 +228,51 @@ def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.Pat
         source: who made the transitions (``scripted``, ``human``, ...), stored in the metadata.
         overwrite: replace an existing dataset at ``path``.
         extra: more metadata entries (e.g. the policy's config).
+        person: who drove (``demos.person``), stored in the metadata.
+        resume: the plan and saved transitions of a stopped recording at ``path``
+            (:func:`memrl.data.sittings.read_plan`): its episodes go on where they stopped and
+            the dataset is saved with the old and the new ones. The other arguments must be
+            the plan's.
+        guard: signals wait while the dataset is being saved (it is saved whole or not at all).
+
+    A recording stopped early is saved with its plan (``sittings`` in the metadata, or only
+    ``progress.json`` when no episode was kept yet), so that ``resume`` can go on with it.
+    Hidden ``.<name>.tmp-*`` folders left beside ``path`` by an interrupted save are removed.
     """
+    path = Path(path)
+    plan, previous = resume if resume is not None else (None, None)
     rec = record_episodes(env_cfg, policy, episodes=episodes, seed=seed, keep_stable=keep_stable,
                           tail_steps=tail_steps, action_noise=action_noise,
-                          frame_stack=frame_stack, render=render, progress=progress)
+                          frame_stack=frame_stack, render=render, progress=progress,
+                          start=plan.next_episode if plan else 0,
+                          kept_before=len(plan.kept) if plan else 0)
+    new_episodes = len(rec.episodes)
+    if plan is not None:  # the earlier sittings first
+        earlier = [EpisodeStats(**e) for e in plan.recorded]
+        rec.episodes = earlier + rec.episodes
+        rec.kept = list(plan.kept) + [len(earlier) + k for k in rec.kept]
+        rec.transitions = ([previous] if previous is not None else []) + rec.transitions
+        overwrite = True
+    now = Plan(episodes=episodes, seed=seed, keep="stable" if keep_stable else "all",
+               tail_steps=tail_steps, action_noise=action_noise, source=source, person=person,
+               next_episode=rec.next_episode, env_config=env_config_values(env_cfg),
+               recorded=[asdict(e) for e in rec.episodes], kept=list(rec.kept))
+    clean_stale(path)
+    if plan is not None and new_episodes == 0:
+        return (path if previous is not None else None), rec  # nothing new: the folder stays
     if not rec.transitions:
-        log.warning("no episode kept out of %d recorded; nothing saved", len(rec.episodes))
+        if rec.stopped_early and rec.episodes:
+            write_progress(path, now)
+            log.warning("no episode kept out of %d recorded; the plan is in %s", len(rec.episodes), path)
+        else:
+            log.warning("no episode kept out of %d recorded; nothing saved", len(rec.episodes))
         return None, rec
     kept = [rec.episodes[i] for i in rec.kept]
     metadata = {
         "source": source,
+        "person": person,
         "seed": seed,
-        "keep": "stable" if keep_stable else "all",
+        "keep": now.keep,
         "tail_steps": tail_steps,
         "action_noise": action_noise,
         "env_config": env_config_values(env_cfg),
@@ -223,9 +280,16 @@ def record_to_dataset(env_cfg: EnvCfg, policy: DrivingPolicy, path: str | os.Pat
         "counts": {"episodes": len(kept), "episodes_recorded": len(rec.episodes)},
         "stats": rec.stats(),
         "episodes": [asdict(e) for e in kept],
+        "sittings": now.to_json(),
         **dict(extra or {}),
     }
-    return save_demos(rec.transitions, path, metadata, overwrite=overwrite), rec
+    with guard.deferred() if guard is not None else contextlib.nullcontext():
+        try:
+            return save_demos(rec.transitions, path, metadata, overwrite=overwrite), rec
+        except OSError as err:
+            if err.filename is None:  # e.g. a full disk inside numpy's zip writer names no file
+                raise OSError(err.errno, err.strerror or str(err), str(path)) from err
+            raise
 
 
 def record_recipe(env_cfg: EnvCfg, recipe: Any, path: str | os.PathLike, *,

@@ -71,6 +71,8 @@ class JobResult:
     records: list[EpisodeRecord] = field(default_factory=list)
     stopped_early: bool = False
     """A human pressed Esc: the episode under way was dropped, the finished ones kept."""
+    interrupted: int | None = None
+    """Exit status of the signal that stopped it (130 SIGINT, 143 SIGTERM); None: none did."""
 
 
 @contextmanager

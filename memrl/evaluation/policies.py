@@ -103,8 +103,18 @@ class HumanActor(Actor):
 
     def __init__(self, driver: DrivingPolicy) -> None:
         self.driver = driver
+        self.total, self.started = 0, 0
+
+    def plan(self, total: int, done: int = 0) -> None:
+        """Episodes of the whole protocol and those finished in earlier sittings (for the window)."""
+        self.total, self.started = total, done
+        if hasattr(self.driver, "kept_label"):
+            self.driver.kept_label = "finished before"
 
     def begin(self, slot: int, env: LaneChangeEnv, seed: int) -> None:
+        if hasattr(self.driver, "progress") and self.total:
+            self.driver.progress = (self.started + 1, self.total, self.started)
+        self.started += 1
         self.driver.reset(env)
 
     def act(self, slots: Sequence[int], envs: Sequence[LaneChangeEnv], pixels: np.ndarray) -> np.ndarray:

@@ -34,6 +34,7 @@ from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_j
 from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord, closing_or_none
 from memrl.modules.policy import FrameStack, StopRecording
+from memrl.stop import Terminated, exit_status_of
 from memrl.workers import stopped_with_parent, worker_start
 
 __all__ = ["Actor", "FrameStack", "Job", "JobResult", "StepHook", "run_job", "run_jobs", "split",
@@ -90,6 +91,9 @@ def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHoo
     except StopRecording:
         log.info("evaluation stopped after %d finished episodes", len(result.records))
         result.stopped_early = True
+    except (KeyboardInterrupt, Terminated) as err:  # Ctrl-C, SIGTERM: keep what finished
+        log.info("evaluation interrupted after %d finished episodes", len(result.records))
+        result.stopped_early, result.interrupted = True, exit_status_of(err)
     finally:
         for env in envs:
             env.close()
@@ -177,7 +181,7 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
             out.records += res.records
             bar.update(len(res.records))
             if res.stopped_early:
-                out.stopped_early = True
+                out.stopped_early, out.interrupted = True, res.interrupted
                 break
     bar.close()
     order = {lane: i for i, lane in enumerate(INITIAL_LANES)}

@@ -10,10 +10,12 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl.evaluation.jobs import JobResult
 from memrl.evaluation.policies import Candidate
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.results import EvalResult, write_result
 from memrl.evaluation.runner import Job, run_jobs
+from memrl.stop import SIGINT_EXIT, SIGTERM_EXIT, SignalGuard, Stopped, Terminated, exit_status_of
 
 log = logging.getLogger(__name__)
 
@@ -21,7 +23,7 @@ log = logging.getLogger(__name__)
 def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
                        env_cfg: Mapping[str, Any] | DictConfig | None = None,
                        out_dir: Path | None = None, workers: int = 1, batch: int = 8,
-                       progress: bool = False) -> EvalResult:
+                       progress: bool = False, resume: EvalResult | None = None) -> EvalResult:
     """Run the protocol's episodes for ``cand`` and write ``eval.json`` + ``episodes.csv``.
 
     Args:
@@ -32,31 +34,74 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
         workers: processes (1: this one); a human always drives in this process.
         batch: episodes stepped in lockstep per process.
         progress: progress bar.
+        resume: a stopped evaluation of the same unit under the same protocol: only its
+            missing episodes are driven (same scene seeds), and the folder gets all of them.
+
+    Raises:
+        Stopped: a person ended it (Esc) or a signal came before every episode finished:
+            what finished is written (``stopped_early``) and the line names the command that
+            goes on with it; before any finished episode, nothing is written.
     """
-    where = cand.out_dir or out_dir
+    where = resume.path if resume is not None else (cand.out_dir or out_dir)
     if where is None:
         raise ValueError(f"evaluate {cand.name}: no output folder")
     seeds = scenario_seeds(protocol.seed, protocol.episodes)
     base = cand.env if cand.env is not None else env_cfg
-    jobs = [Job(protocol_env(base, protocol, lane), lane, list(enumerate(seeds)))
+    done = {(r.initial_lane, r.episode) for r in resume.records()} if resume is not None else set()
+    jobs = [Job(protocol_env(base, protocol, lane), lane,
+                [(i, s) for i, s in enumerate(seeds) if (lane, i) not in done])
             for lane in protocol.initial_lanes]
+    total = len(seeds) * len(protocol.initial_lanes)
+    if hasattr(cand.actor, "plan"):
+        cand.actor.plan(total, done=len(done))
     start = time.perf_counter()
+    interrupted = None
     try:
-        res = run_jobs(cand.actor, jobs, workers=workers, batch=batch, progress=progress,
-                       desc=f"evaluate {cand.name}")
+        with SignalGuard():
+            res = run_jobs(cand.actor, [j for j in jobs if j.episodes], workers=workers, batch=batch,
+                           progress=progress, desc=f"evaluate {cand.name}")
+    except (KeyboardInterrupt, Terminated) as err:  # between jobs, or in worker processes
+        interrupted = exit_status_of(err)
+        res = JobResult(stopped_early=True)
     finally:
         cand.actor.close()
-    wall = time.perf_counter() - start
-    if not res.records:
+    interrupted = interrupted or res.interrupted
+    wall = time.perf_counter() - start + (resume.wall_s if resume is not None else 0.0)
+    records = sorted([*(resume.records() if resume is not None else []), *res.records],
+                     key=lambda r: (protocol.initial_lanes.index(r.initial_lane), r.episode))
+    how = {SIGINT_EXIT: "interrupted (SIGINT)", SIGTERM_EXIT: "interrupted (SIGTERM)"}.get(
+        interrupted, "stopped")  # type: ignore[arg-type]
+    if not res.records and (res.stopped_early or interrupted):
+        raise Stopped(f"{how} before any episode finished; nothing saved", interrupted or SIGINT_EXIT)
+    if not records:
         raise RuntimeError(f"evaluate {cand.name}: no episode finished")
-    result = write_result(Path(where), cand.name, res.records, protocol, seeds, cand.meta,
-                          stopped_early=res.stopped_early, wall_s=wall, env=jobs[0].env,
-                          extra={"workers": workers, "batch": batch,
-                                 "steps": sum(r.steps for r in res.records)})
+    stopped = res.stopped_early or len(records) < total
+    result = write_result(Path(where), cand.name, records, protocol, seeds, cand.meta,
+                          stopped_early=stopped, wall_s=wall, env=jobs[0].env,
+                          extra={"workers": workers, "batch": batch, "episodes_planned": total,
+                                 "steps": sum(r.steps for r in records)})
     steps = sum(r.steps for r in res.records)
     log.info("%s (%s): %d episodes, %d steps in %.1f s (%.0f steps/s) -> %s", cand.name,
              result.unit, len(res.records), steps, wall, steps / max(wall, 1e-9), where)
+    if stopped:
+        print(score_line(result), f"-> {result.path}")
+        raise Stopped(f"{how} after {len(records)} of {total} episodes, saved in {where}; go on with: "
+                      f"{resume_command(cand, where)}", interrupted or SIGINT_EXIT)
     return result
+
+
+def resume_command(cand: Candidate, where: Path | str) -> str:
+    """The command that goes on with a stopped evaluation in ``where``."""
+    kind, person = cand.meta.get("kind"), cand.meta.get("person")
+    policy = {"human": "policy=human" + (f" policy.person={person}" if person else ""),
+              "driver": f"policy={cand.name}", "checkpoint": f"policy.run={cand.meta.get('run')}"}
+    return f"python -m memrl.evaluate {policy.get(str(kind), '')} resume={where}".replace("  ", " ")
+
+
+def is_complete(result: EvalResult) -> bool:
+    """Every episode of the protocol is in the evaluation (a stopped one is partial)."""
+    planned = int(result.protocol.get("episodes", 0)) * len(result.protocol.get("initial_lanes", []))
+    return not result.stopped_early and sum(s.episodes for s in result.scores.values()) >= planned
 
 
 def score_line(result: EvalResult) -> str:
