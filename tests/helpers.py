@@ -90,3 +90,28 @@ def assert_same_final_weights_and_agent_buffers(cfg, demos, run_a: Path, run_b: 
     assert len(buffers[0]) == len(buffers[1]) > 0
     idx = torch.arange(len(buffers[0]))
     assert (buffers[0].storage.get(idx) == buffers[1].storage.get(idx)).all()
+
+
+class Killed(RuntimeError):
+    """A simulated kill in the middle of a run."""
+
+
+def train_killed_after(monkeypatch, cfg, run_dir: Path, demos, episodes: int) -> None:
+    """Train ``cfg`` into ``run_dir`` and kill it as soon as ``episodes`` episodes are done
+    (it keeps its last checkpoint before them, as a kill -9 would)."""
+    import pytest
+
+    from memrl.dqn.loop import Trainer
+    from memrl.train import train
+
+    original = Trainer._episodes_done
+
+    def dying(self, ends):
+        original(self, ends)
+        if self.counters.episodes >= episodes:
+            raise Killed("simulated kill")
+
+    monkeypatch.setattr(Trainer, "_episodes_done", dying)
+    with pytest.raises(Killed):
+        train(cfg, run_dir, demos=demos)
+    monkeypatch.setattr(Trainer, "_episodes_done", original)

@@ -248,8 +248,8 @@ def test_the_table_covers_every_top_level_key(compose_cfg):
     """One row per top-level key of every command (keys that take any string excepted)."""
     from memrl.schemas import SCHEMAS
 
-    free = {"task_name", "out", "env", "agent", "buffer", "mode", "eval", "logger", "paths", "demos",
-            "protocol", "policy", "deploy", "memory", "e2e", "stage1", "learner", "opponents"}
+    free = {"task_name", "out", "env", "agent", "buffer", "mode", "network", "eval", "logger", "paths",
+            "demos", "protocol", "policy", "deploy", "memory", "e2e", "stage1", "learner", "opponents"}
     for command in SCHEMAS:
         keys = set(compose_cfg(command).keys()) - free
         named = {o.split("=")[0].split(".")[0].lstrip("+") for c, ovs, _ in ROWS if c == command

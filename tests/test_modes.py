@@ -13,11 +13,7 @@ from memrl.dqn.losses import MarginTerm, TDTerm
 from memrl.modes import MODES, ModeSpec, StageSpec, by_label, register_mode, used
 from memrl.schemas import STUDY_MODES
 from memrl.train import train
-from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
-
-
-class Killed(Exception):
-    pass
+from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows, train_killed_after
 
 
 @pytest.fixture
@@ -50,17 +46,7 @@ def test_a_toy_mode_from_this_file_trains_and_resumes_after_a_kill(compose_cfg, 
     first = csv_rows(tmp_path / "full" / "episodes.csv")[0]
     assert 0.05 < float(first["epsilon"]) <= 0.5
 
-    original = Trainer._episodes_done
-
-    def dying(self, ends):
-        original(self, ends)
-        if self.counters.episodes == 5:
-            raise Killed("simulated kill")
-
-    monkeypatch.setattr(Trainer, "_episodes_done", dying)
-    with pytest.raises(Killed):
-        train(cfg, tmp_path / "cut", demos=demos)
-    monkeypatch.setattr(Trainer, "_episodes_done", original)
+    train_killed_after(monkeypatch, cfg, tmp_path / "cut", demos, episodes=5)
     resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
     assert resumed.resumed_from_episode == 4
     for key in ("frames", "episodes", "updates", "stage"):

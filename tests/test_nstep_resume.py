@@ -5,29 +5,14 @@ from __future__ import annotations
 import pytest
 
 from memrl.dqn import checkpoint as ckpt
-from memrl.dqn.loop import Trainer
 from memrl.train import train
-from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
-
-
-class Killed(RuntimeError):
-    pass
+from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows, train_killed_after
 
 
 def _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch, extra):
     cfg = compose_cfg("train", TINY + extra)
     full = train(cfg, tmp_path / "full", demos=demos)
-    original = Trainer._episodes_done
-
-    def dying(self, ends):
-        original(self, ends)
-        if self.counters.episodes >= 8:  # checkpoints fall mid-episode of the other envs
-            raise Killed("simulated kill")
-
-    monkeypatch.setattr(Trainer, "_episodes_done", dying)
-    with pytest.raises(Killed):
-        train(cfg, tmp_path / "cut", demos=demos)
-    monkeypatch.setattr(Trainer, "_episodes_done", original)
+    train_killed_after(monkeypatch, cfg, tmp_path / "cut", demos, episodes=8)  # mid-episode of the others
     state = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")
     assert 3 <= state["counters"]["episodes"] < 8 and bool(state["collector"]["engine"]["steps"].any())
     resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)

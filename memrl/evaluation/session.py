@@ -15,6 +15,7 @@ from memrl.evaluation.policies import Candidate
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.results import EvalResult, write_result
 from memrl.evaluation.runner import Job, run_jobs
+from memrl.signals import Interrupted
 from memrl.stop import SIGINT_EXIT, SIGTERM_EXIT, SignalGuard, Stopped, Terminated, exit_status_of
 
 log = logging.getLogger(__name__)
@@ -71,7 +72,9 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
                      key=lambda r: (protocol.initial_lanes.index(r.initial_lane), r.episode))
     how = {SIGINT_EXIT: "interrupted (SIGINT)", SIGTERM_EXIT: "interrupted (SIGTERM)"}.get(
         interrupted, "stopped")  # type: ignore[arg-type]
-    if not res.records and (res.stopped_early or interrupted):
+    if not res.records and interrupted:  # a signal: the command's one line, with the command again
+        raise Interrupted(int(interrupted) - 128)
+    if not res.records and res.stopped_early:  # Esc in a person's window
         raise Stopped(f"{how} before any episode finished; nothing saved", interrupted or SIGINT_EXIT)
     if not records:
         raise RuntimeError(f"evaluate {cand.name}: no episode finished")
