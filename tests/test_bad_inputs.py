@@ -99,6 +99,7 @@ ROWS = [
     ("train", ["+mode=A", "mode.example.episodes=0"], "mode.example.episodes"),
     # record
     ("record", ["episodes=0"], "episodes"),
+    ("record", ["resume=/nonexistent/recording"], "resume"),
     ("record", ["seed=-3"], "seed"),
     ("record", ["keep=some"], "keep"),
     ("record", ["tail_steps=-1"], "tail_steps"),
@@ -111,6 +112,7 @@ ROWS = [
     ("record", ["env.lanes_count=1"], "lanes_count"),
     # evaluate
     ("evaluate", ["policy=scripted", "workers=-1"], "workers"),
+    ("evaluate", ["policy=scripted", "resume=/nonexistent/evaluation"], "resume"),
     ("evaluate", ["policy=scripted", "batch=0"], "batch"),
     ("evaluate", ["policy=scripted", "progress=maybe"], "progress"),
     ("evaluate", [], "policy.run"),
