@@ -145,15 +145,6 @@ def by_label(label: str) -> ModeSpec:
     raise KeyError(f"no mode labelled {label!r} (labels: {[m.label for m in MODES.values()]})")
 
 
-def stage_spec(name: str) -> StageSpec:
-    """A stage of any mode by its tag (``B1``)."""
-    for spec in MODES.values():
-        for s in spec.stages:
-            if s.name == name:
-                return s
-    raise KeyError(f"no stage {name!r}")
-
-
 def used(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` (a plain train config) with only the ``mode`` keys its mode reads: a setting a
     run never used cannot stop it from resuming, nor split a report row."""
