@@ -109,7 +109,7 @@ def test_augment_shift_moves_a_stack_as_one_within_its_bound():
     assert torch.equal(random_shift(batch, 0, gen), batch)
 
 
-def test_augment_shifts_sampled_batches_only_and_resumes_exactly(compose_cfg, tmp_path, demos):
+def test_augment_shifts_sampled_batches_only_and_runs_repeat_exactly(compose_cfg, tmp_path, demos):
     """With shifts the loss differs from the unshifted one; two runs of one seed are equal
     (the learner's own generator), and the stored transitions are never shifted."""
     from memrl.dqn.learner import Learner

@@ -48,7 +48,7 @@ LEARNING_OPTIONS: dict[str, dict[str, Any]] = {
 }
 """Learning options timed beside the default (``learning=true``): name -> ``agent`` values,
 ``network`` values (over Table I's), or ``stage1``: mode B's stage-1 update (every row a demo,
-DQfD's margin term at its default weight, as :mod:`memrl.modes` declares it)."""
+DQfD's margin term at ``mode.stage1``'s default weight and margin)."""
 
 
 def default_agent_cfg() -> DictConfig:
@@ -126,6 +126,7 @@ def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any
                stage1: bool = False) -> Callable[[], float]:
     """The training loop's update: sample from the replay buffer, ``Learner.update`` (``network``:
     the architecture; ``stage1``: every sampled row a demo, with the margin term)."""
+    from memrl.dqn.config import Stage1Config
     from memrl.dqn.learner import Learner
     from memrl.dqn.losses import MarginTerm, TDTerm
     from memrl.modules.qnet import TABLE1
@@ -133,7 +134,8 @@ def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any
     torch.manual_seed(seed)
     learner = Learner(agent, network={**TABLE1, **(network or {})})
     if stage1:
-        learner.start_stage((TDTerm(), MarginTerm(3.0, 0.8)))
+        s1 = Stage1Config()  # the margin term of mode B's stage 1 at its defaults
+        learner.start_stage((TDTerm(), MarginTerm(s1.margin_weight, s1.margin)))
     batch_size = int(agent.batch_size)
 
     def step() -> float:

@@ -118,9 +118,10 @@ class Learner:
             if inputs and inputs[0] is pixels and torch.is_grad_enabled() and output.requires_grad:
                 seen.setdefault("q", output)
 
-        # A hook on this call only: TorchRL's DQNLoss does not return its Q(s, .), and a hook
-        # kept on the module would be copied with it (the acting copy of overlap mode).
-        handle = self.qnet.register_forward_hook(online_q)
+        # A hook on this call only, and only when a later term can use it: TorchRL's DQNLoss does
+        # not return its Q(s, .), and a hook kept on the module would be copied with it (the
+        # acting copy of overlap mode).
+        handle = self.qnet.register_forward_hook(online_q) if len(self.terms) > 1 else None
         total: torch.Tensor | None = None
         try:
             for term in self.terms:
@@ -128,7 +129,8 @@ class Learner:
                 if value is not None:
                     total = value if total is None else total + value
         finally:
-            handle.remove()
+            if handle is not None:
+                handle.remove()
         if total is None:
             raise ValueError(f"no loss term applies to this batch (terms: {[t.name for t in self.terms]})")
         return total
