@@ -92,7 +92,7 @@ def _record(cfg: DictConfig, guard: SignalGuard) -> tuple[Path | None, Recording
     person = cfg.demos.get("person")
     kw: dict[str, Any] = {
         "episodes": int(cfg.episodes), "seed": int(cfg.seed), "keep_stable": cfg.keep == "stable",
-        "tail_steps": cfg.get("tail_steps"), "action_noise": float(cfg.get("action_noise", 0.0)),
+        "tail_steps": cfg.tail_steps, "action_noise": float(cfg.action_noise),
         "source": str(cfg.demos.source)}
     env: Any = cfg.env
     out, resume = Path(str(cfg.out)), None

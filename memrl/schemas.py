@@ -702,7 +702,7 @@ def check_dagger(cfg: DictConfig) -> None:
 
     check_fields(DaggerSchema, cfg)
     check_fields(AgentConfig, cfg.agent, "agent.")
-    if int(cfg.agent.get("threads", 0)) < 0:
+    if int(cfg.agent.threads) < 0:
         raise config_error("agent.threads", f"must be >= 0, got {cfg.agent.threads}")
     check_env(cfg.env)
     if cfg.demos.source != "scripted":

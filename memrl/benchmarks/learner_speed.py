@@ -93,8 +93,8 @@ def bare_step(agent: DictConfig, batch: dict[str, torch.Tensor], seed: int) -> C
     from memrl.modules.qnet import QNetwork
 
     torch.manual_seed(seed)
-    net = QNetwork(pool_first=bool(agent.get("pool_first", True)))
-    net.conv_dtype = conv_dtype(str(agent.get("precision", "float32")))
+    net = QNetwork(pool_first=bool(agent.pool_first))
+    net.conv_dtype = conv_dtype(str(agent.precision))
     if agent.channels_last:
         net = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     target = copy.deepcopy(net)

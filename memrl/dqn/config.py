@@ -249,7 +249,7 @@ def check_train_config(cfg: DictConfig) -> None:
           "set total_frames or total_episodes (or both)")
     share = max([float(st.demo_share(cfg)) for st in spec.stages if not st.offline(cfg)], default=0.0)
     agent_part = int(cfg.buffer.capacity) - int(round(float(share) * int(cfg.buffer.capacity)))
-    n_envs = int(cfg.env.get("num_envs", 1))
+    n_envs = int(cfg.env.num_envs)
     _need(agent_part >= n_envs, "env.num_envs",
           f"{n_envs} envs write {n_envs} transitions per step, more than the {agent_part} the "
           "replay keeps for the agent's data; raise buffer.capacity")

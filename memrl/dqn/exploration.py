@@ -24,7 +24,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite
 from torchrl.modules import EGreedyModule
 
-from memrl.dqn.config import EXPLORATIONS
+from memrl.dqn.config import EXPLORATIONS, AgentConfig
 from memrl.envs.vehicles import ACTIONS, N_ACTIONS
 
 KEEP_CURVATURE = torch.tensor([i for i, (_, dk) in enumerate(ACTIONS) if dk == 0])
@@ -113,15 +113,19 @@ class Boltzmann(AlwaysExploring):
 
 
 def make_exploration(eps_start: float, eps_end: float, decay_frames: int, kind: str = "epsilon",
-                     num_envs: int = 1, **options: Any) -> EGreedyModule:
+                     num_envs: int = 1, *, ez_mu: float = AgentConfig.ez_mu,
+                     ez_max_duration: int = AgentConfig.ez_max_duration,
+                     temperature_start: float = AgentConfig.temperature_start,
+                     temperature_end: float = AgentConfig.temperature_end) -> EGreedyModule:
     """The acting policy's exploration module over the 9 actions.
 
     Args:
         eps_start, eps_end, decay_frames: the linear schedule of epsilon (``boltzmann``: of the
-            temperature, from ``options['temperature_start']`` to ``['temperature_end']``).
+            temperature, from ``temperature_start`` to ``temperature_end``).
         kind: one of :data:`EXPLORATIONS`.
         num_envs: envs acting together (``ez_greedy`` keeps one repeat per env).
-        options: ``ez_mu``, ``ez_max_duration``, ``temperature_start``, ``temperature_end``.
+        ez_mu, ez_max_duration, temperature_start, temperature_end: as ``agent.*``
+            (:class:`~memrl.dqn.config.AgentConfig`, whose defaults these are).
     """
     spec = Categorical(N_ACTIONS, dtype=torch.int64)
     if kind == "epsilon":
@@ -131,10 +135,10 @@ def make_exploration(eps_start: float, eps_end: float, decay_frames: int, kind: 
                                   annealing_num_steps=decay_frames)
     if kind == "ez_greedy":
         return EzGreedy(spec, eps_init=eps_start, eps_end=eps_end, annealing_num_steps=decay_frames,
-                        num_envs=num_envs, mu=float(options.get("ez_mu", 2.0)),
-                        max_duration=int(options.get("ez_max_duration", 50)))
+                        num_envs=num_envs, mu=float(ez_mu),
+                        max_duration=int(ez_max_duration))
     if kind == "boltzmann":
-        return Boltzmann(spec, eps_init=float(options.get("temperature_start", 1.0)),
-                         eps_end=float(options.get("temperature_end", 0.05)),
+        return Boltzmann(spec, eps_init=float(temperature_start),
+                         eps_end=float(temperature_end),
                          annealing_num_steps=decay_frames)
     raise ValueError(f"agent.exploration: unknown {kind!r} (one of {', '.join(EXPLORATIONS)})")

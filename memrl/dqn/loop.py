@@ -107,7 +107,7 @@ class Trainer:
         torch.manual_seed(int(cfg.seed))
         np.random.seed(int(cfg.seed) % 2**32)
         self.device = resolve_device(cfg.device)
-        self.num_envs = int(cfg.env.get("num_envs", 1))
+        self.num_envs = int(cfg.env.num_envs)
         self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed))
         self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=cfg.network)
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),

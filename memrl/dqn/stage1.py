@@ -11,6 +11,7 @@ import torch
 from tensordict import TensorDictBase
 
 from memrl.dqn.config import Stage1Config
+from memrl.envs.config import LaneChangeConfig
 from memrl.evaluation.jobs import module_device
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
@@ -95,7 +96,7 @@ def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int], batch: i
     device; ``batch``: envs in lockstep on the gym path, used only when the engine cannot draw
     the env's frames)."""
     protocol = ProtocolConfig(episodes=len(seeds), initial_lanes=["non_goal"],
-                              duration=int(env_cfg.get("duration", 300)))  # the run's length
+                              duration=int(env_cfg.get("duration", LaneChangeConfig.duration)))  # the run's length
     job = Job(protocol_env(env_cfg, protocol, "non_goal"), "non_goal", list(enumerate(seeds)))
     device = device if device is not None else module_device(qnet)
     records = run_jobs(GreedyActor(qnet), [job], batch=batch, device=device).records  # type: ignore[arg-type]

@@ -14,6 +14,7 @@ import numpy as np
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
+from memrl.envs.config import LaneChangeConfig
 from memrl.errors import UserError
 
 SPEED_CHANGES = (-1, 0, +1)
@@ -27,6 +28,10 @@ ACTIONS: tuple[tuple[int, int], ...] = tuple(
 N_ACTIONS = len(ACTIONS)
 IDLE = ACTIONS.index((0, 0))
 """The action that keeps speed and curvature (index 4)."""
+_ENV = LaneChangeConfig()
+ACTION_LIMITS: dict[str, Any] = {"speed_step": _ENV.speed_step, "curvature_step": _ENV.curvature_step,
+                                 "speed_limits": tuple(_ENV.speed_limits), "curvature_limit": _ENV.curvature_limit}
+"""A car's action steps and limits when none are given: the env config's defaults."""
 
 
 class InvalidActionError(UserError, ValueError):
@@ -99,11 +104,11 @@ class CurvatureVehicle(Vehicle):
         """Learned cars: which network of the opponent pool drives this car this episode."""
         self.frames: np.ndarray | None = None
         """Learned cars: the car's own stack of BEV frames."""
-        lim = limits or {}
-        self.speed_step = float(lim.get("speed_step", 0.1))
-        self.curvature_step = float(lim.get("curvature_step", 0.01))
-        self.speed_limits = tuple(lim.get("speed_limits", (0.0, 15.0)))
-        self.curvature_limit = float(lim.get("curvature_limit", 0.05))
+        lim = {**ACTION_LIMITS, **(limits or {})}
+        self.speed_step = float(lim["speed_step"])
+        self.curvature_step = float(lim["curvature_step"])
+        self.speed_limits = tuple(lim["speed_limits"])
+        self.curvature_limit = float(lim["curvature_limit"])
 
     def apply_action(self, action: int) -> None:
         """Add the speed and curvature changes of one of the 9 actions, then clamp both."""

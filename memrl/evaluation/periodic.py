@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from memrl.csv_table import CsvTable
+from memrl.envs.config import LaneChangeConfig
 from memrl.evaluation.jobs import module_device
 from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.policies import GreedyActor
@@ -55,7 +56,7 @@ def periodic_eval(qnet: nn.Module, env_cfg: Mapping[str, Any] | DictConfig, epis
     """
     env = OmegaConf.to_container(env_cfg, resolve=True) if isinstance(env_cfg, DictConfig) else dict(env_cfg)
     protocol = ProtocolConfig(episodes=episodes, seed=seed, initial_lanes=list(initial_lanes),
-                              duration=int(duration or env.get("duration", 300)))  # type: ignore[union-attr]
+                              duration=int(duration or env.get("duration", LaneChangeConfig.duration)))  # type: ignore[union-attr]
     seeds = list(enumerate(scenario_seeds(seed, episodes, domain="periodic")))
     jobs = [Job(protocol_env(env, protocol, lane), lane, seeds) for lane in initial_lanes]  # type: ignore[arg-type]
     start = time.perf_counter()

@@ -85,7 +85,7 @@ class Dataset:
 
 def build_net(cfg: DictConfig, frames: int) -> QNetwork:
     """The Table I network, built as the trainer builds it (``make_q_actor``, ``agent.pool_first``)."""
-    return make_q_actor(frames=frames, pool_first=bool(cfg.agent.get("pool_first", True))).module[0].module
+    return make_q_actor(frames=frames, pool_first=bool(cfg.agent.pool_first)).module[0].module
 
 
 def greedy(net: QNetwork, pixels: torch.Tensor) -> torch.Tensor:
@@ -170,7 +170,7 @@ class Driver:
 
 def run_dagger(cfg: DictConfig, out_dir: Path) -> list[IterationLog]:
     """Run ``cfg.iterations`` DAgger iterations; write the run folder (see :mod:`memrl.dagger`)."""
-    if cfg.agent.get("threads"):
+    if cfg.agent.threads:
         torch.set_num_threads(int(cfg.agent.threads))
     torch.manual_seed(int(cfg.seed))
     gen = torch.Generator().manual_seed(int(cfg.seed))

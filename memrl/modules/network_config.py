@@ -38,7 +38,7 @@ class NetworkConfig:
 def check_network(node: Any, key: str = "network") -> None:
     """Ranges of the ``network`` node, and a ``_target_`` that names a ``torch.nn.Module`` class."""
     check_fields(NetworkConfig, node, f"{key}.")
-    target = str(node.get("_target_", ""))
+    target = str(node.get("_target_") or "")  # missing: refused below as an empty name
     try:
         from hydra.utils import get_class
 
