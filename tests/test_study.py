@@ -86,6 +86,15 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
     walls = [json.loads((folder / "runs" / r / "summary.json").read_text())["train_wall_s"]
              for r in result.trained]
     assert f"- total: training {sum(walls):,.0f} s (sum over 4 runs), evaluation " in md
+    # training cost: each run's row from its summary.json, by hand
+    cost = md.split("## Training cost")[1].split("## ")[0]
+    for run in result.trained:
+        s = json.loads((folder / "runs" / run / "summary.json").read_text())
+        stage1 = s["stage1"]["updates"] if run.startswith("B_") else 0
+        assert stage1 > 0 or run.startswith("Default_")
+        wall = s["train_wall_s"]
+        assert (f"| {run} | {s['frames']:,} | {s['updates']:,} | {stage1:,} | {wall:,.0f} | "
+                f"{s['updates'] / wall:,.1f} | {s['frames'] / wall:,.1f} |") in cost, run
     assert (folder / "fig5.png").is_file() and (folder / "study.json").is_file()
     assert (folder / "fig_stage2.png").is_file() and (folder / "fig7_B.png").is_file()
     assert "![fig_stage2](fig_stage2.png)" in md

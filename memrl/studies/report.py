@@ -324,6 +324,31 @@ def training_section(finished: Sequence[Cell]) -> list[str]:
     return lines + [""]
 
 
+def cost_section(finished: Sequence[Cell]) -> list[str]:
+    """``## Training cost``: per finished run its env steps, updates (stage 1's among them; none
+    where ``mode.stage1.init`` brought them from another run), training wall time over all its
+    calls, and the rates over that time."""
+    rows = []
+    for c in sorted(finished, key=lambda c: c.name):
+        s = _summary(c)
+        if not s:
+            continue
+        wall = train_wall(s)
+        shared = c.cfg is not None and OmegaConf.select(c.cfg, "mode.stage1.init") is not None
+        s1 = int((s.get("stage1") or {}).get("updates", 0)) if _pretrains(s.get("mode")) and not shared else 0
+        dash = "\u2014"
+        rates = [dash, dash] if not wall else [f"{int(s[k]) / wall:,.1f}" for k in ("updates", "frames")]
+        rows.append(f"| {c.name} | {int(s['frames']):,} | {int(s['updates']):,} | {s1:,} | "
+                    f"{dash if wall is None else f'{wall:,.0f}'} | {rates[0]} | {rates[1]} |")
+    if not rows:
+        return []
+    return ["## Training cost", "",
+            "Per run, over all its calls (`summary.json`; runs that shared the machine's cores with "
+            "other work ran slower than alone):", "",
+            "| run | env steps | updates | of them stage 1 | training wall [s] | updates/s | env steps/s |",
+            "|---|---|---|---|---|---|---|", *rows, ""]
+
+
 def _periodic(run: Path) -> list[dict[str, float]]:
     import csv
 
@@ -412,7 +437,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
               *both_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *traffic_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *crash_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
-              *training_section(inputs.finished), "## Figures", ""]
+              *training_section(inputs.finished), *cost_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
     lines += ["## Files", "",
               "`table3.csv` (this table, long format, with the paper's column), `table3.md` and "
