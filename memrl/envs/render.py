@@ -461,7 +461,9 @@ class BEVRenderer:
             target_lane: lane painted in the target shade (when ``show_target_lane``).
             ego: the car whose view this is, drawn in the 'agent' shade. When it is not the
                 agent, the agent is drawn as a 'learned' car: to a car driven by a copy of
-                the agent, the agent is another learning driver.
+                the agent, the agent is another learning driver. Its path is drawn when
+                ``path_length > 0``; with ``path_time > 0`` every car's path is drawn, each in
+                its car's shade.
 
         Returns:
             ``(H, W, 3)`` uint8 RGB picture, or ``(H, W)`` grayscale when ``channels == 1``.
