@@ -375,7 +375,8 @@ def test_numpy_and_torch_paths_of_the_rasterizer_draw_the_same_pixels(channels):
     renderer = BEVRenderer(View(84, 84, 0.2, 0.8), 3, 4.0, (5.0, 2.0), path_time=2.0, max_speed=15.0,
                            channels=channels)
     paths = np.concatenate([cars[..., :2], rng.uniform(-0.5, 0.5, (v, c, 1)),
-                            rng.choice([0.0, 0.02, -0.05], (v, c, 1)), rng.uniform(0, 15, (v, c, 1))], axis=-1)
+                            rng.choice([0.0, 0.02, -0.05], (v, c, 1)), rng.uniform(0, 15, (v, c, 1))],
+                           axis=-1)
     a = renderer.render_batch(center, target, cars, labels, paths)
     b = renderer.render_batch(*(torch.from_numpy(x) for x in (center, target, cars, labels, paths)))
     assert np.array_equal(a, b.numpy())

@@ -24,8 +24,13 @@ from gymnasium.utils.seeding import np_random
 
 from memrl.envs import batched_physics as physics
 from memrl.envs.batched_state import engine_state, load_engine_state
-from memrl.envs.config import (BatchedEnvError, LaneChangeConfig, env_config_dict, max_car_speed,
-                               validate_env_config)
+from memrl.envs.config import (
+    BatchedEnvError,
+    LaneChangeConfig,
+    env_config_dict,
+    max_car_speed,
+    validate_env_config,
+)
 from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.crash import NO_CRASH, classify_rows
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners

@@ -477,8 +477,8 @@ class BEVRenderer:
         if ego is not None and self.path_length > 0:
             path = np.array([[ego.position[0], ego.position[1], ego.heading, ego.curvature]])
         elif self.path_time > 0:
-            path = np.array([[c.position[0], c.position[1], c.heading, c.curvature, c.speed] for c in vehicles],
-                            dtype=np.float64).reshape(1, -1, 5)
+            path = np.array([[c.position[0], c.position[1], c.heading, c.curvature, c.speed]
+                             for c in vehicles], dtype=np.float64).reshape(1, -1, 5)
         img = self.render_batch(np.array([[float(center[0]), float(center[1])]]),
                                 np.array([-1 if target_lane is None else int(target_lane)]), cars, labels,
                                 path)
