@@ -84,6 +84,8 @@ ROWS = [
     ("train", ["eval.episodes=0"], "eval.episodes"),
     ("train", ["eval.initial_lanes=[left]"], "eval.initial_lanes"),
     ("train", ["env.vehicles_count=[5,0]"], "vehicles_count"),
+    ("train", ["env.bev.path_time=11"], "bev.path_time"),
+    ("train", ["env.bev.path_length=20", "env.bev.path_time=2"], "bev.path_length,bev.path_time"),
     ("train", ["env.lanes_count=1"], "lanes_count"),
     ("train", ["env.duration=0"], "duration"),
     ("train", ["env.lane_width=inf"], "lane_width"),

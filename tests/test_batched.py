@@ -126,6 +126,14 @@ def test_path_cue_and_off_nominal_starts_match_the_reference(backend):
     compare(config, list(range(8)), 150, random_actions(0.3))
 
 
+def test_every_cars_path_matches_the_reference(backend):
+    """``bev.path_time``: every car's path (its speed as the line's length) in every frame,
+    16 seeds x 300 steps among other cars, crashes and resets included."""
+    config = {"bev": {"path_length": 0.0, "path_time": 2.0}, **NON_GOAL, "vehicles_count": [3, 5]}
+    tally = compare(config, list(range(500, 516)), 300, random_actions(0.5))
+    assert tally.steps == 16 * 300 and tally.collisions > 0 and tally.resets > 16
+
+
 @pytest.fixture(scope="module")
 def pool(tmp_path_factory):
     # spread Q-values: no near-ties that the batch composition could flip
@@ -138,6 +146,16 @@ def test_learned_cars_act_as_the_reference_controller_does(pool, kind):
     tally = compare(config, list(range(4)), 100, random_actions(0.3))
     assert tally.steps == 4 * 100
     compare(config, list(range(4, 8)), 60, random_actions(1.0), auto_reset=True)
+
+
+@pytest.mark.parametrize("kind", ["learned", "mixed"])
+def test_learned_cars_see_every_cars_path_as_the_reference_shows_it(pool, kind):
+    """With ``bev.path_time`` the learned cars' own views show the speeds and curvatures of all
+    cars as the step began (before any car's action applies), in both engines."""
+    config = {"opponent": {"type": kind, "pool": pool, "epsilon": 0.1}, "vehicles_count": 4,
+              "bev": {"path_time": 2.0}}
+    tally = compare(config, list(range(4)), 100, random_actions(0.3))
+    assert tally.steps == 4 * 100
 
 
 def test_learned_cars_of_all_envs_share_one_forward_pass_per_step(pool):
@@ -353,3 +371,12 @@ def test_numpy_and_torch_paths_of_the_rasterizer_draw_the_same_pixels(channels):
     b = renderer.render_batch(*(torch.from_numpy(x) for x in (center, target, cars, labels, path)))
     assert np.array_equal(a, b.numpy())
     assert len(np.unique(a)) >= 5  # road, markings and several car shades were drawn
+    # every car's path (bev.path_time): any speed, heading and curvature, absent cars
+    renderer = BEVRenderer(View(84, 84, 0.2, 0.8), 3, 4.0, (5.0, 2.0), path_time=2.0, max_speed=15.0,
+                           channels=channels)
+    paths = np.concatenate([cars[..., :2], rng.uniform(-0.5, 0.5, (v, c, 1)),
+                            rng.choice([0.0, 0.02, -0.05], (v, c, 1)), rng.uniform(0, 15, (v, c, 1))],
+                           axis=-1)
+    a = renderer.render_batch(center, target, cars, labels, paths)
+    b = renderer.render_batch(*(torch.from_numpy(x) for x in (center, target, cars, labels, paths)))
+    assert np.array_equal(a, b.numpy())

@@ -25,6 +25,11 @@ def test_cuda_steady_driving_and_path_cue_match_the_reference():
     compare({"bev": {"path_length": 20.0}}, list(range(32, 48)), 310, random_actions(0.0), device="cuda")
 
 
+def test_cuda_every_cars_path_matches_the_reference():
+    config = {"bev": {"path_time": 2.0}, **NON_GOAL}
+    compare(config, list(range(500, 516)), 300, random_actions(0.5), device="cuda")
+
+
 def test_cuda_engine_runs_thousands_of_envs():
     from memrl.envs.batched import BatchedLaneChange
 

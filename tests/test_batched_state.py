@@ -132,6 +132,16 @@ def test_a_state_saved_before_frame_stride_existed_loads_at_stride_1():
         BatchedLaneChange({"frame_stride": 2}, 2).load_state_dict(state)
 
 
+def test_a_state_saved_before_path_time_existed_loads_with_the_cue_off():
+    engine = BatchedLaneChange({}, 2)
+    engine.reset(seeds=[0, 1])
+    state = engine.state_dict()
+    assert state["config"].pop("bev.path_time") == 0.0  # as saved by the older version
+    BatchedLaneChange({}, 2).load_state_dict(state)
+    with pytest.raises(BatchedEnvError, match="config bev.path_time: saved 0.0, this engine 2.0"):
+        BatchedLaneChange({"bev": {"path_time": 2.0}}, 2).load_state_dict(state)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_a_state_saved_on_cuda_loads_on_cpu(tmp_path):
     gpu = BatchedLaneChange({}, 4, "cuda")

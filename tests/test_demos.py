@@ -420,7 +420,8 @@ def test_record_example_and_bad_options(compose_cfg, tmp_path):
 
 
 def test_dataset_recorded_before_a_later_key_still_loads(copy):
-    """A dataset whose stored env config predates ``bev.path_length`` (the key is absent)
+    """A dataset whose stored env config predates ``bev.path_length`` (the key is absent; as
+    ``frame_stack``, ``frame_stride`` and ``bev.path_time``)
     loads into the default env, keeps its hash, and is refused by an env that draws the path."""
     import hashlib
 
@@ -429,6 +430,7 @@ def test_dataset_recorded_before_a_later_key_still_loads(copy):
     assert meta["env_config"]["bev"].pop("path_length") == 0.0
     assert meta["env_config"].pop("frame_stack") == 1  # a later key too
     assert meta["env_config"].pop("frame_stride") == 1  # and another
+    assert meta["env_config"]["bev"].pop("path_time") == 0.0  # and another
     # The hash as the version without the key computed it: over every stored key.
     old = demos_mod._canonical({k: v for k, v in meta["env_config"].items()
                                 if k not in demos_mod.EPISODE_KEYS})
@@ -438,3 +440,5 @@ def test_dataset_recorded_before_a_later_key_still_loads(copy):
     assert len(load_demos(copy, env_cfg=SHORT)) == len(load_demos(copy))
     with pytest.raises(DemoDatasetError, match="bev"):
         load_demos(copy, env_cfg={**SHORT, "bev": {"path_length": 20.0}})
+    with pytest.raises(DemoDatasetError, match="bev"):
+        load_demos(copy, env_cfg={**SHORT, "bev": {"path_time": 2.0}})

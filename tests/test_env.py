@@ -239,6 +239,8 @@ def test_five_cars_by_default_in_both_lanes():
         ({"opponent": "nobody"}, "opponent"),
         ({"initial_heading": 0.6}, "initial_heading"),
         ({"initial_offset": 1.5}, "initial_offset"),
+        ({"bev": {"path_time": -1.0}}, "bev.path_time"),
+        ({"bev": {"path_length": 20.0, "path_time": 2.0}}, "bev.path_length,bev.path_time"),
     ],
 )
 def test_bad_config_names_the_key(config, key):

@@ -140,3 +140,62 @@ def test_path_cue_is_off_by_default_and_checked():
     assert LaneChangeEnv().bev.path_length == 0.0
     with pytest.raises(EnvConfigError, match="bev.path_length"):
         LaneChangeEnv(config={"bev": {"path_length": -1.0}})
+
+
+def test_every_cars_path_shows_its_speed_as_the_lines_length():
+    """``bev.path_time=2``: a car 20.4 m ahead in lane 1 (y 4.1) at 6 m/s and the agent at
+    5 m/s, both straight: each draws a 1-px line from its centre row to where it will be in
+    2 s, under the cars, in its own shade; nothing else in the picture changes."""
+    gray = gray_palette(PALETTE)
+    pictures = {}
+    for path_time in (0.0, 2.0):
+        env = empty_road(bev={"path_time": path_time})
+        env.place_agent(500.0, 0.1, speed=5.0)
+        env.add_car(520.4, 4.1, 6.0)
+        pictures[path_time] = env.observe_from(env.vehicle, 1)[0]
+    plain, img = pictures[0.0], pictures[2.0]
+    # rows: floor(42 - dx / 0.8), columns: floor(42 + dy / 0.2) (crop centred on the agent)
+    # other car: column floor(42 + 4.1 / 0.2) = floor(62.5) = 62; its centre row
+    # floor(42 - 20.4 / 0.8) = floor(16.5) = 16, its tip 12 m further at floor(1.5) = 1;
+    # its body covers rows 13..19 (centres within 5 m / 2 / 0.8 px = 3.125 px of 16.5)
+    # agent: column floor(42 + 0.1 / 0.2) = 42; centre row 42, tip 10 m ahead at
+    # floor(42 - 12.5) = 29; its body covers rows 39..44 (centres within 3.125 px of 42)
+    expected = plain.copy()
+    for row in range(1, 17):
+        if not 13 <= row <= 19:
+            expected[row, 62] = gray["constant"]
+    for row in range(29, 43):
+        if not 39 <= row <= 44:
+            expected[row, 42] = gray["agent"]
+    assert np.array_equal(img, expected)
+    assert plain[1:13, 62].tolist() != [gray["constant"]] * 12  # (the line is new)
+
+
+def test_absent_cars_draw_no_path_and_path_time_off_draws_none():
+    from memrl.envs.render import LABEL, BEVRenderer, View
+
+    view = View(84, 84, LAT, LON)
+    on = BEVRenderer(view, 2, 4.0, path_time=2.0, max_speed=15.0, channels=1)
+    off = BEVRenderer(view, 2, 4.0, channels=1)
+    center, target = np.array([[500.0, 0.0]]), np.array([1])
+    cars = np.array([[[500.0, 0.0, 0.0], [515.0, 4.0, 0.0]]])
+    paths = np.array([[[500.0, 0.0, 0.0, 0.0, 5.0], [515.0, 4.0, 0.0, 0.02, 8.0]]])
+    both = np.array([[LABEL["agent"], LABEL["constant"]]])
+    only_agent = np.array([[LABEL["agent"], -1]])
+    alone = on.render_batch(center, target, cars[:, :1], only_agent[:, :1], paths[:, :1])
+    assert np.array_equal(on.render_batch(center, target, cars, only_agent, paths), alone)
+    assert not np.array_equal(on.render_batch(center, target, cars, both, paths), alone)
+    # path_time 0: the paths are not drawn, whatever is passed
+    assert np.array_equal(off.render_batch(center, target, cars, both, None),
+                          off.render_batch(center, target, cars, both, paths[..., 0, :4]))
+
+
+def test_path_time_is_checked_and_not_combined_with_path_length():
+    from memrl.envs.config import EnvConfigError
+
+    assert LaneChangeEnv().bev.path_time == 0.0
+    for bad in (-0.5, 10.5):
+        with pytest.raises(EnvConfigError, match=r"bev\.path_time"):
+            LaneChangeEnv(config={"bev": {"path_time": bad}})
+    with pytest.raises(EnvConfigError, match=r"bev\.path_length,bev\.path_time': two path cues"):
+        LaneChangeEnv(config={"bev": {"path_length": 20.0, "path_time": 2.0}})

@@ -24,7 +24,13 @@ from gymnasium.utils.seeding import np_random
 
 from memrl.envs import batched_physics as physics
 from memrl.envs.batched_state import engine_state, load_engine_state
-from memrl.envs.config import BatchedEnvError, LaneChangeConfig, env_config_dict, validate_env_config
+from memrl.envs.config import (
+    BatchedEnvError,
+    LaneChangeConfig,
+    env_config_dict,
+    max_car_speed,
+    validate_env_config,
+)
 from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.crash import NO_CRASH, classify_rows
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
@@ -162,7 +168,8 @@ class BatchedLaneChange:
         self.renderer = BEVRenderer(
             View(b.width, b.height, b.lateral_scale, b.longitudinal_scale), cfg.lanes_count,
             cfg.lane_width, (cfg.vehicle_length, cfg.vehicle_width), show_target_lane=b.show_target_lane,
-            dash_length=b.dash_length, path_length=b.path_length, channels=1, device=dev)
+            dash_length=b.dash_length, path_length=b.path_length, path_time=b.path_time,
+            max_speed=max_car_speed(cfg), channels=1, device=dev)
         # frame ring [L, N, H, W] (L = history) in one flat buffer: each slot followed by N
         # scratch pictures (first frames of envs reset in the same render call, see step),
         # then a spare last byte (the renderer's)
@@ -437,7 +444,15 @@ class BatchedLaneChange:
         labels = where(learned, LABEL["learned"], LABEL["constant"])
         labels[:, 0] = LABEL["agent"]
         labels = where(present, labels, -1)
-        return state[:, 0, :2], target, state[..., :3], labels, state[:, 0, [X, Y, HEADING, CURVATURE]]
+        return state[:, 0, :2], target, state[..., :3], labels, self._paths(state, state[:, 0])
+
+    def _paths(self, state: Any, viewer: Any) -> Any:
+        """The renderer's ``path`` of views of env states ``[V, C, 5]`` by the cars ``viewer
+        [V, 5]``: every car's (x, y, heading, curvature, speed) when ``bev.path_time > 0``, else
+        the viewer's (x, y, heading, curvature) (drawn when ``bev.path_length > 0``)."""
+        if self.renderer.path_time > 0:
+            return state[..., [X, Y, HEADING, CURVATURE, SPEED]]
+        return viewer[:, [X, Y, HEADING, CURVATURE]]
 
     def _render_into(self, slot: int, views: tuple[Any, ...]) -> None:
         """Draw the views into the ring's ``slot`` (N of them), then its scratch pictures."""
@@ -472,7 +487,7 @@ class BatchedLaneChange:
         labels = torch.where(self.present[env_i], labels, -1)
         me = state[torch.arange(len(env_i), device=self.device), slot_i]  # [M, 5]
         frames = self._draw((me[:, :2], self.car_target[env_i, slot_i], state[..., :3], labels,
-                             me[:, [X, Y, HEADING, CURVATURE]]))
+                             self._paths(state, me)))
         stacks = self._car_frames[env_i, slot_i]  # [M, L, H, W]
         fresh = self._car_fresh[env_i, slot_i]
         stacks = torch.where(fresh[:, None, None, None], frames[:, None].expand_as(stacks),

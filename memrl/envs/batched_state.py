@@ -24,7 +24,7 @@ VERSION = 1
 TENSORS = ("state", "present", "is_learned", "car_target", "policy", "target_lane", "steps", "crashed",
            "reached", "car_fresh")
 """Engine attributes saved as they are (``car_fresh`` is ``_car_fresh``)."""
-LATER = {"frame_stride": 1}
+LATER = {"frame_stride": 1, "bev.path_time": 0.0}
 """Keys (of the state and of its flattened config) added after version 1, with the value that
 states saved before them had: such a state still loads into an engine at that value."""
 

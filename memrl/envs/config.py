@@ -38,6 +38,16 @@ class BEVConfig:
     otherwise hard to see: one 0.01 rad/m step turns the car by under a pixel's worth over
     four frames, and the scripted prior knowledge steers by it
     (``python -m memrl.bench stage1`` compares)."""
+    path_time: float = 0.0
+    """Draw EVERY car's path ahead of it at its current heading and curvature for this many
+    seconds of driving, ``speed * path_time`` metres, a 1-px line in that car's shade under the
+    cars (0: off; at most 10 s; not together with ``path_length``). Its length shows each car's
+    speed, which the frames otherwise hide: at 0.8 m/px along the road and 0.1 s between
+    frames, a car closing on the one ahead at under 0.8 / 0.3 = 2.7 m/s moves less than a
+    pixel across a 4-frame stack, yet a 1 m/s closing speed lengthens or shortens the gap
+    between the two lines' tips by ``path_time / 0.8`` px per m/s (2.5 px at 2 s). At constant
+    speeds the tips are where the cars will be after ``path_time`` seconds: the own line's tip
+    reaching the tip of the car ahead means a rear-end within ``path_time``."""
     grayscale: bool = True
     """Draw each shade's grayscale level directly (observation ``[1, H, W]``); exactly TorchRL's
     ``GrayScale`` of the RGB drawing, 3x less work. False: RGB ``[3, H, W]`` observations, and
@@ -264,6 +274,7 @@ RULES: dict[str, tuple[Any, str]] = {
     "bev.longitudinal_scale": _num(gt=0),
     "bev.dash_length": _num(gt=0),
     "bev.path_length": _num(ge=0),
+    "bev.path_time": _num(ge=0, le=10),
     "scene.width": _int(8),
     "scene.height": _int(8),
     "scene.lateral_scale": _num(gt=0),
@@ -316,9 +327,18 @@ def min_road_length(cfg: LaneChangeConfig) -> float:
         + cfg.vehicle_length
 
 
+def max_car_speed(cfg: LaneChangeConfig) -> float:
+    """The highest speed any car can have [m/s]: the agent's and learned cars' clamp, or the
+    fastest constant-speed car (the longest ``bev.path_time`` path is this times path_time)."""
+    return max(cfg.speed_limits[1], cfg.other_speed[1])
+
+
 def _check_together(cfg: LaneChangeConfig) -> None:
     """Checks across keys: ranges that must fit together."""
     _check(cfg.vehicle_width < cfg.lane_width, "vehicle_width", "must be < lane_width")
+    _check(cfg.bev.path_length == 0 or cfg.bev.path_time == 0, "bev.path_length,bev.path_time",
+           f"two path cues ({cfg.bev.path_length} m of the own path, {cfg.bev.path_time} s of every "
+           "car's): set one of them to 0")
     low, high = cfg.speed_limits
     _check(low <= cfg.initial_speed[0] and cfg.initial_speed[1] <= high, "initial_speed",
            f"{list(cfg.initial_speed)} must lie inside speed_limits {list(cfg.speed_limits)}")

@@ -16,7 +16,7 @@ from highway_env.envs.common.observation import ObservationType
 from highway_env.road.lane import LineType, StraightLane
 from highway_env.road.road import Road, RoadNetwork
 
-from memrl.envs.config import LaneChangeConfig, env_config_dict, validate_env_config
+from memrl.envs.config import LaneChangeConfig, env_config_dict, max_car_speed, validate_env_config
 from memrl.envs.controllers import CarController, Opponents, make_opponents
 from memrl.envs.crash import NO_CRASH, classify
 from memrl.envs.render import BEVRenderer, View, car_corners
@@ -221,12 +221,17 @@ class LaneChangeEnv(AbstractEnv):
         """One action step: every car takes its action, then all move by ``dt``."""
         self._components = None
         if action is not None:
+            action = validate_action(action)
+        # Every car chooses before any car's action applies (the batched engine's order): a
+        # learned car's view shows the other cars' speeds and curvatures (``bev.path_time``)
+        # as they were when the step began.
+        chosen = [(cars, controller.act(self, cars)) for controller in self.controllers
+                  if (cars := self._cars_of(controller))]
+        if action is not None:
             self.action_type.act(action)
-        for controller in self.controllers:
-            cars = self._cars_of(controller)
-            if cars:
-                for car, a in zip(cars, controller.act(self, cars), strict=True):
-                    car.apply_action(int(a))
+        for cars, actions in chosen:
+            for car, a in zip(cars, actions, strict=True):
+                car.apply_action(int(a))
         self._move_and_collide(self.cfg.dt)
         self.steps += 1
         lo, hi = self._lateral_extent(self.vehicle)
@@ -331,7 +336,7 @@ class LaneChangeEnv(AbstractEnv):
                 View(b.width, b.height, b.lateral_scale, b.longitudinal_scale),
                 self.cfg.lanes_count, self.cfg.lane_width, (self.cfg.vehicle_length, self.cfg.vehicle_width),
                 show_target_lane=b.show_target_lane, dash_length=b.dash_length,
-                path_length=b.path_length,
+                path_length=b.path_length, path_time=b.path_time, max_speed=max_car_speed(self.cfg),
                 channels=1 if b.grayscale else 3,
             )
         return self._bev

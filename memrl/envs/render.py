@@ -12,6 +12,9 @@ point the crop is centred on maps to the continuous point (W/2, H/2). A pixel ta
 of whatever covers its centre: a car (rectangle, closed) covers the pixels whose centres lie
 inside it, later cars over earlier ones; the path cue covers every pixel one of its points
 (spaced under half a pixel along the arc) falls in.
+
+Draw order: the road, then (``path_time > 0``) every car's path (later slots over earlier
+ones), then the cars, then (``path_length > 0``) the viewing car's path cue.
 """
 
 from __future__ import annotations
@@ -184,7 +187,12 @@ class BEVRenderer:
         show_target_lane: paint the target lane in its own shade.
         dash_length: lane-marking dash (and gap) length [m].
         path_length: length [m] of the viewing car's path drawn ahead of it at its current
-            heading and curvature (0: none).
+            heading and curvature, over the cars (0: none).
+        path_time: every car's path drawn ahead of it at its current heading and curvature
+            over ``speed * path_time`` metres [s], under the cars, each in its car's shade
+            (0: none; not together with ``path_length``).
+        max_speed: the highest speed a car can have [m/s]: fixes the points per path so that
+            they lie at most half a pixel apart (fixed shapes) when ``path_time > 0``.
         palette: RGB shades by name (default :data:`PALETTE`).
         channels: 3 for RGB; 1 draws each shade's grayscale level directly, equal to
             TorchRL's ``GrayScale`` of the RGB picture.
@@ -201,16 +209,22 @@ class BEVRenderer:
         show_target_lane: bool = True,
         dash_length: float = 3.0,
         path_length: float = 0.0,
+        path_time: float = 0.0,
+        max_speed: float = 0.0,
         palette: dict[str, tuple[int, int, int]] | None = None,
         channels: int = 3,
         device: torch.device | str = "cpu",
     ) -> None:
         if channels not in (1, 3):
             raise ValueError(f"channels must be 1 or 3, got {channels}")
+        if path_length > 0 and path_time > 0:
+            raise ValueError(f"path_length ({path_length}) and path_time ({path_time}) are two path "
+                             "cues: set one of them to 0")
         self.view, self.channels, self.device = view, channels, torch.device(device)
         self.lanes_count, self.lane_width = lanes_count, lane_width
         self.car_length, self.car_width = float(car_size[0]), float(car_size[1])
         self.show_target_lane, self.dash_length, self.path_length = show_target_lane, dash_length, path_length
+        self.path_time = path_time
         rgb = dict(PALETTE if palette is None else palette)
         shades = [rgb[name] for name in LABELS]
         if channels == 3:
@@ -244,6 +258,8 @@ class BEVRenderer:
             # dashes that can show in a crop: 2 * half_span of road plus a period on each side
             "dash_k": np.arange(math.ceil(2 * self._half_span / (2 * dash_length)) + 3, dtype=np.float64),
             "path_s": np.linspace(0.0, path_length, max(2, math.ceil(path_length / step) + 1)),
+            # fractions of each car's path (speed * path_time) where its points lie
+            "path_u": np.linspace(0.0, 1.0, max(2, math.ceil(max_speed * path_time / step) + 1)),
         }
         on_device = {k: torch.from_numpy(v).to(self.device) for k, v in consts.items()}
         self._consts: dict[_Ops, dict[str, Any]] = {NUMPY: consts, TORCH: on_device}
@@ -259,8 +275,10 @@ class BEVRenderer:
             target_lane: ``[V]`` lane painted in the target shade (-1: none).
             cars: ``[V, C, 3]`` (x, y, heading) of the cars to draw, in draw order (float64).
             car_label: ``[V, C]`` index into :data:`LABELS` of each car (-1: no car in that slot).
-            path: ``[V, 4]`` (x, y, heading, curvature) of each view's own car, whose path
-                is drawn when ``path_length > 0`` (None: no path).
+            path: when ``path_length > 0``, ``[V, 4]`` (x, y, heading, curvature) of each
+                view's own car, whose path is drawn; when ``path_time > 0``, ``[V, C, 5]``
+                (x, y, heading, curvature, speed) of the cars in ``cars``, whose paths are
+                drawn in their ``car_label`` shades (None: no path).
         """
         v, x_ = self.view, TORCH if isinstance(center, torch.Tensor) else NUMPY
         flat = x_.empty_u8(len(center) * v.height * v.width + 1, self.device)
@@ -280,6 +298,8 @@ class BEVRenderer:
         values = k["table"] if self.channels == 1 else k["labels"]
         base = start + x_.arange(n_views, self.device) * size  # [V] offset of each picture
         self._background(x_, center, target_lane, values, flat, base, start)
+        if path is not None and self.path_time > 0:
+            self._paint_paths(x_, flat, base, center, path, car_label, values)
         self._paint_cars(x_, flat, base, center, cars, car_label, values)
         if path is not None and self.path_length > 0:
             rel = arc_points(path, k["path_s"]) - center[:, None, :]  # [V, S, 2]
@@ -347,6 +367,25 @@ class BEVRenderer:
         rows.reshape(-1)[dashed.reshape(-1)] = values[LABEL["marking"]]
         source = rows[:, :, : v.width].reshape(2 * n_views, v.width)
         x_.take_rows(source, (2 * views + dash).reshape(-1), pictures.reshape(-1, v.width))
+
+    def _paint_paths(self, x_: _Ops, flat: Any, base: Any, center: Any, path: Any, car_label: Any,
+                     values: Any) -> None:
+        """Paint every car's path (``path_time > 0``): the arc it drives at its heading and
+        curvature over ``speed * path_time`` metres, a 1-px line in its shade, slot after slot
+        (one shade per write: later cars' paths over earlier ones, as the cars)."""
+        v, k = self.view, self._consts[x_]
+        if car_label.shape[1] == 0:
+            return
+        s = (path[..., 4] * self.path_time)[..., None] * k["path_u"]  # [V, C, S] arc lengths [m]
+        rel = arc_points(path[..., :4], s) - center[:, None, None, :]  # [V, C, S, 2]
+        col = x_.i64(x_.floor(0.5 * v.width + rel[..., 1] / v.lateral_scale))
+        row = x_.i64(x_.floor(0.5 * v.height - rel[..., 0] / v.longitudinal_scale))
+        ok = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width) & (car_label >= 0)[..., None]
+        index = x_.slot_major(x_.where(ok, base[:, None, None] + row * v.width + col, flat.shape[0] - 1))
+        shade = x_.slot_major(values[x_.clip(car_label, 0, None)])  # [C, V]
+        n_points = index.shape[-1]
+        for slot in range(len(index)):
+            flat[index[slot].reshape(-1)] = x_.repeat(shade[slot], n_points)
 
     def _paint_cars(self, x_: _Ops, flat: Any, base: Any, center: Any, cars: Any, car_label: Any,
                     values: Any) -> None:
@@ -422,7 +461,9 @@ class BEVRenderer:
             target_lane: lane painted in the target shade (when ``show_target_lane``).
             ego: the car whose view this is, drawn in the 'agent' shade. When it is not the
                 agent, the agent is drawn as a 'learned' car: to a car driven by a copy of
-                the agent, the agent is another learning driver.
+                the agent, the agent is another learning driver. Its path is drawn when
+                ``path_length > 0``; with ``path_time > 0`` every car's path is drawn, each in
+                its car's shade.
 
         Returns:
             ``(H, W, 3)`` uint8 RGB picture, or ``(H, W)`` grayscale when ``channels == 1``.
@@ -435,6 +476,9 @@ class BEVRenderer:
         path = None
         if ego is not None and self.path_length > 0:
             path = np.array([[ego.position[0], ego.position[1], ego.heading, ego.curvature]])
+        elif self.path_time > 0:
+            path = np.array([[c.position[0], c.position[1], c.heading, c.curvature, c.speed]
+                             for c in vehicles], dtype=np.float64).reshape(1, -1, 5)
         img = self.render_batch(np.array([[float(center[0]), float(center[1])]]),
                                 np.array([-1 if target_lane is None else int(target_lane)]), cars, labels,
                                 path)
