@@ -92,6 +92,19 @@ class ModeSpec:
             schema = hints[part]
         return True
 
+    def own_overrides(self, overrides: list[str]) -> list[str]:
+        """``overrides`` less those of a ``mode`` key that it lacks and another mode has: a
+        study's train overrides and variants apply to every mode, each takes its own keys (a
+        key no mode has is kept: composition refuses it, naming it)."""
+        def foreign(override: str) -> bool:
+            key = override.lstrip("~+").partition("=")[0]
+            if not key.startswith("mode."):
+                return False
+            key = key.removeprefix("mode.")
+            return not self.has_key(key) and any(m.has_key(key) for m in MODES.values())
+
+        return [o for o in overrides if not foreign(str(o))]
+
     @property
     def needs_demos(self) -> bool:
         """Reads prior knowledge: some stage keeps demos in its buffer (``demos_path`` read)."""
