@@ -158,8 +158,9 @@ SHORT = ["total_frames=null", "total_episodes=2", "env.duration=30", "agent.warm
 def reference_margin_weight(cfg, stage: str) -> float:
     """The margin weight each stage used before modes were declared (the old builder's rule)."""
     m = cfg.mode
-    return {"default": 0.0, "A": float(m.margin_weight), "B1": float(m.stage1.margin_weight),
-            "B2": float(m.stage2.margin_weight) if m.stage2.demo_fraction > 0 else 0.0}[stage]
+    return {"default": lambda: 0.0, "A": lambda: float(m.margin_weight),
+            "B1": lambda: float(m.stage1.margin_weight),
+            "B2": lambda: float(m.stage2.margin_weight) if m.stage2.demo_fraction > 0 else 0.0}[stage]()
 
 
 @pytest.mark.parametrize("preset", [["+experiment=smoke"], ["+experiment=paper"]])
