@@ -185,8 +185,8 @@ def test_mode_b_on_n_envs_killed_in_stage_1_resumes_exactly(compose_cfg, tmp_pat
     with pytest.raises(Killed):
         train(cfg, tmp_path / "cut", demos=demos)
     monkeypatch.setattr(Trainer, "save_checkpoint", original)
-    resumed = train(compose_cfg("train", TINY + [
-        "+mode=B", "env.num_envs=2", "total_episodes=null", "total_frames=48",
+    resumed = train(compose_cfg("train", tiny("B") + [
+        "env.num_envs=2", "total_episodes=null", "total_frames=48",
         "mode.stage1.criterion=max_updates", f"resume={tmp_path / 'cut'}"]), demos=demos)
     assert resumed.stage1["updates"] == full.stage1["updates"] == 12
     assert (resumed.frames, resumed.episodes, resumed.updates) == (full.frames, full.episodes, full.updates)
@@ -292,9 +292,11 @@ def test_checkpoint_from_before_the_demo_recipe_asks_for_the_old_example(compose
         train(compose_cfg("train", TINY + ["total_episodes=1", *extra]), run, demos=demos)
         state_file = run / "checkpoints" / "last" / "state.pt"
         state = torch.load(state_file, weights_only=False)
-        del state["config"]["mode"]["example"]
+        # an older checkpoint: its mode node held every mode's keys, but no example yet
+        older = with_old_union(state["config"]["mode"])
+        state["config"]["mode"] = {k: v for k, v in older.items() if k != "example"}
         torch.save(state, state_file)
-        ckpt.write_manifest(state_file.parent)  # an older checkpoint, re-manifested as the refusal says
+        ckpt.write_manifest(state_file.parent)  # re-manifested as the refusal says
         again = compose_cfg("train", TINY + ["total_episodes=2", f"resume={run}", *extra])
         if mode == "A":
             with pytest.raises(ckpt.CheckpointError, match="mode.example") as err:
