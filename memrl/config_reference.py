@@ -36,7 +36,8 @@ Each command's keys as `conf/<command>.yaml` composes them with no overrides. **
 value in the YAML (`${...}`: an interpolation, resolved at run time; `???`: must be given);
 **range**: what the start checks accept (blank: any value of the type); **doc**: the field's
 docstring (for the few untyped keys, the comment of their YAML line). Optional groups add or
-change keys (`+mode=A|B`, `+experiment=...`, `opponent=...`, `logger=...`, `policy=...`,
+change keys (`+mode=A|B`: the `mode` node of each is in its own section below `train`;
+`+experiment=...`, `opponent=...`, `logger=...`, `policy=...`,
 `demos=...`); their values are in `conf/<group>/<option>.yaml`.
 """
 
@@ -181,15 +182,15 @@ def _rows(command: str, node: DictConfig, prefix: str, rows: list[tuple[str, ...
         rows.append((name, type_, default, rng, doc))
 
 
-def command_rows(command: str) -> list[tuple[str, ...]]:
-    """(key, type, default, range, doc) of every key of ``conf/<command>.yaml`` composed as is
-    (memrl's schemas registered: :func:`memrl.configs.register_configs`)."""
+def command_rows(command: str, overrides: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    """(key, type, default, range, doc) of every key of ``conf/<command>.yaml`` composed as is,
+    or with ``overrides`` (memrl's schemas registered: :func:`memrl.configs.register_configs`)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name=command, overrides=[], return_hydra_config=False)
+        cfg = compose(config_name=command, overrides=list(overrides), return_hydra_config=False)
     GlobalHydra.instance().clear()
     rows: list[tuple[str, ...]] = []
     _rows(command, cfg, "", rows)
@@ -214,4 +215,31 @@ def markdown() -> str:
             parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} "
                          f"| {_cell(text)} |")
         parts.append("")
+        if command == "train":
+            parts += _mode_sections(seen_docs)
     return "\n".join(parts)
+
+
+def _mode_sections(seen_docs: dict[str, str]) -> list[str]:
+    """One table per mode selected with ``+mode=<name>``: the keys of its own ``mode`` node
+    (its schema in :mod:`memrl.modes`; no other mode's keys are there)."""
+    from memrl.modes import MODES
+
+    parts = []
+    for spec in MODES.values():
+        if not spec.overrides:
+            continue
+        select = " ".join(spec.overrides)
+        parts.append(f"### train {select}\n\nThe `mode` node of mode {spec.name} "
+                     f"(`{spec.schema.__name__ if spec.schema else 'name only'}`, memrl/modes.py): "
+                     f"its keys and no other; a preset's values of them are in "
+                     f"`conf/mode_preset/{spec.name}_<preset>.yaml`.\n")
+        parts.append("| key | type | default | range | doc |\n|---|---|---|---|---|")
+        for key, type_, default, rng, text in command_rows("train", tuple(spec.overrides)):
+            if not key.startswith("mode."):
+                continue
+            text = text or seen_docs.get(key, "")
+            parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} "
+                         f"| {_cell(text)} |")
+        parts.append("")
+    return parts

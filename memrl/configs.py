@@ -6,10 +6,11 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from memrl.control.config import DeployConfig
-from memrl.dqn.config import AgentConfig, BufferConfig, ModeConfig
+from memrl.dqn.config import AgentConfig, BufferConfig
 from memrl.envs.config import LaneChangeConfig
 from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.protocol import ProtocolConfig
+from memrl.modes import MODES
 from memrl.modules.network_config import NetworkConfig
 from memrl.schemas import SCHEMAS
 
@@ -30,8 +31,11 @@ def register_configs() -> None:
     cs.store(group="network", name="network_schema", node=NetworkConfig)
     cs.store(group="protocol", name="protocol_schema", node=ProtocolConfig)
     cs.store(group="eval_schema", name="base", node=PeriodicEvalConfig, package="eval")
-    # A group of its own, so that `+mode=A|B` can still be added on top of the typed node.
-    cs.store(group="mode_schema", name="base", node=ModeConfig, package="mode")
+    # Each mode's own typed `mode` node (memrl/modes.py): conf/train.yaml picks `default`,
+    # conf/mode/<name>.yaml (`+mode=<name>`) overrides the choice with its own.
+    for spec in MODES.values():
+        if spec.schema is not None:
+            cs.store(group="mode_schema", name=spec.name, node=spec.schema, package="mode")
 
 
 def main(argv: list[str] | None = None) -> int:

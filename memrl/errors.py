@@ -22,6 +22,11 @@ _FILE_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EPERM, errno.EDQU
 _NOISE = ("full_key:", "object_type=", "reference_type=", "msg:", "    ")
 
 
+EXPLAINERS: list[Any] = []
+"""Callables ``err -> str | None`` that word an error better than its own text (first one that
+answers wins; :func:`memrl.modes.explain_key_error`, a key of a mode that is not selected)."""
+
+
 class UserError(Exception):
     """Bad input (a config value, a file): the message names the key or file and what is valid."""
 
@@ -58,6 +63,10 @@ def exit_status(err: BaseException) -> int:
 
 def one_line(err: BaseException) -> str:
     """The message of a user error on one line, naming the key (config errors) or the file."""
+    for explain in EXPLAINERS:
+        text = explain(err)
+        if text:
+            return text
     omegaconf = sys.modules.get("omegaconf.errors")
     cause = err.__cause__
     if omegaconf is not None and isinstance(cause, omegaconf.OmegaConfBaseException) and \

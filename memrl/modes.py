@@ -2,7 +2,9 @@
 
 Each mode (:class:`ModeSpec`) is declared once, here (Default, A, B) or from any module with
 :func:`register_mode` (a test adds a toy mode from its own file): its config name and Table III
-label, the ``mode`` keys it reads, its range checks and its stages in order. Each stage
+label, its config schema (a dataclass: the keys of its ``mode`` node, their types and defaults;
+the composed ``mode`` node holds these keys and no other), its range checks and its stages in
+order. Each stage
 (:class:`StageSpec`) gives its buffer recipe (the share the prior knowledge holds), its
 exploration, its loss terms (:mod:`memrl.dqn.losses`), its optimizer settings and its stop
 rule: an online stage runs until the run's budget; an offline stage (prior knowledge only,
@@ -15,11 +17,14 @@ them branches on a mode or stage name. Importing this module does not import tor
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from functools import cache
+from typing import Any, get_type_hints
 
-from memrl.errors import config_error
+from memrl.data.recipe import DemoRecipe
+from memrl.errors import EXPLAINERS, config_error
 
 Cfg = Any
 """The composed ``train`` config (a DictConfig)."""
@@ -61,13 +66,44 @@ class ModeSpec:
     label: str
     """Its Table III row label."""
     stages: tuple[StageSpec, ...]
-    reads: tuple[str, ...] = ("name",)
-    """The ``mode`` keys it reads (dotted); the others cannot stop a resume or split a report
-    row. ``example`` counts only where ``demos_path`` is null (the dataset is recorded from it)."""
+    schema: type | None = None
+    """Its ``mode`` node: a dataclass whose fields are its keys (``name`` defaults to its name),
+    registered as ``mode_schema/<name>`` (:func:`memrl.configs.register_configs`); ``+mode=<name>``
+    selects it (``conf/mode/<name>.yaml``). None: ``name`` alone."""
     check: Callable[[Cfg], None] = lambda cfg: None
     """Range checks of its keys (raise :func:`memrl.errors.config_error` naming the key)."""
     overrides: tuple[str, ...] = field(default=())
     """Command-line overrides that select it (``+mode=A``); filled in by :func:`register_mode`."""
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """The top-level ``mode`` keys it has (its schema's fields): the only ones it reads."""
+        return tuple(f.name for f in fields(self.schema)) if self.schema is not None else ("name",)
+
+    def has_key(self, dotted: str) -> bool:
+        """Whether its ``mode`` node has the key ``dotted`` (``stage1.lr``; no ``mode.``)."""
+        schema: Any = self.schema
+        for part in dotted.split("."):
+            if schema is None or not is_dataclass(schema):
+                return schema is None and part == "name" and "." not in dotted
+            hints = _hints(schema)
+            if part not in hints:
+                return False
+            schema = hints[part]
+        return True
+
+    def own_overrides(self, overrides: list[str]) -> list[str]:
+        """``overrides`` less those of a ``mode`` key that it lacks and another mode has: a
+        study's train overrides and variants apply to every mode, each takes its own keys (a
+        key no mode has is kept: composition refuses it, naming it)."""
+        def foreign(override: str) -> bool:
+            key = override.lstrip("~+").partition("=")[0]
+            if not key.startswith("mode."):
+                return False
+            key = key.removeprefix("mode.")
+            return not self.has_key(key) and any(m.has_key(key) for m in MODES.values())
+
+        return [o for o in overrides if not foreign(str(o))]
 
     @property
     def needs_demos(self) -> bool:
@@ -93,25 +129,40 @@ class ModeSpec:
         return self.stages[i + 1] if i + 1 < len(self.stages) else None
 
     def used(self, mode: dict[str, Any]) -> dict[str, Any]:
-        """The values of ``mode`` this mode reads (a plain ``mode`` dict; unread keys dropped,
-        ``example`` with its defaults filled in when it is read)."""
+        """The values of ``mode`` this mode reads (a plain ``mode`` dict, of this run or of a run
+        made when the ``mode`` node held every mode's keys): its schema's keys, nested ones
+        included, the others dropped; ``example`` only where ``demos_path`` is null (the dataset
+        is recorded from it), with its defaults filled in."""
         from memrl.data.recipe import recipe_values
 
-        out: dict[str, Any] = {}
-        for key in self.reads:
-            head, _, rest = key.partition(".")
-            if head not in mode:
-                continue
-            if not rest:
-                out[head] = mode[head]
-            elif isinstance(mode[head], dict) and rest in mode[head]:
-                out.setdefault(head, {})[rest] = mode[head][rest]
+        out = _project(self.schema, mode) if self.schema is not None else \
+            {k: v for k, v in mode.items() if k == "name"}
         if "example" in out:
             if out.get("demos_path") is None:
                 out["example"] = recipe_values(out["example"])
             else:
                 del out["example"]
         return out
+
+
+@cache
+def _hints(schema: type) -> dict[str, Any]:
+    """Field name -> its resolved type, for a schema dataclass."""
+    hints = get_type_hints(schema)
+    return {f.name: hints[f.name] for f in fields(schema)}
+
+
+def _project(schema: type, node: dict[str, Any]) -> dict[str, Any]:
+    """``node`` with only the keys of ``schema``, recursing into its nested schemas (not into
+    ``example``, a recipe whose values :func:`memrl.data.recipe.recipe_values` fills)."""
+    out: dict[str, Any] = {}
+    for key, typ in _hints(schema).items():
+        if key not in node:
+            continue
+        value = node[key]
+        nested = is_dataclass(typ) and typ is not DemoRecipe and isinstance(value, dict)
+        out[key] = _project(typ, value) if nested else value  # type: ignore[arg-type]
+    return out
 
 
 MODES: dict[str, ModeSpec] = {}
@@ -124,8 +175,13 @@ def register_mode(spec: ModeSpec) -> ModeSpec:
     clash = sorted(taken & {s.name for s in spec.stages})
     if clash:
         raise ValueError(f"mode {spec.name}: stage names {clash} are taken by another mode")
+    if spec.schema is not None:
+        named = {f.name: f.default for f in fields(spec.schema)}
+        if named.get("name") != spec.name:
+            raise ValueError(f"mode {spec.name}: its schema {spec.schema.__name__} needs a field "
+                             f"name: str = {spec.name!r}")
     overrides = () if spec.name == "default" else (f"+mode={spec.name}",)
-    MODES[spec.name] = ModeSpec(spec.name, spec.label, spec.stages, spec.reads, spec.check, overrides)
+    MODES[spec.name] = replace(spec, overrides=overrides)
     return MODES[spec.name]
 
 
@@ -152,6 +208,38 @@ def used(config: dict[str, Any]) -> dict[str, Any]:
     if not isinstance(mode, dict) or mode.get("name") not in MODES:
         return config
     return {**config, "mode": MODES[str(mode["name"])].used(mode)}
+
+
+def explain_key_error(err: BaseException) -> str | None:
+    """One line for a command-line key of a mode that is not selected (``mode.stage1.lr=1e-3``
+    without ``+mode=B``): which mode has it and how to select it; None for any other error.
+    Hooked into :func:`memrl.errors.one_line`."""
+    m = re.match(r"Could not (?:override|append to) '(?:\+{0,2})(mode\.[^']+)'", str(err))
+    if m is None:
+        return None
+    key = m.group(1)
+    owners = [s for s in MODES.values() if s.has_key(key.removeprefix("mode."))]
+    if not owners:
+        return None
+    cause = err.__cause__
+    where = str(getattr(cause, "full_key", "") or "").split(".")[1:-1]  # the node that lacks it
+    otype = getattr(cause, "object_type", None)
+    now = [s.name for s in MODES.values() if otype is not None and _schema_at(s.schema, where) is otype]
+    which = f"mode {now[0]}" if len(now) == 1 else "the selected mode"
+    how = " or ".join(o.overrides[0] if o.overrides else "no +mode" for o in owners)
+    whose = " and ".join(o.name for o in owners)
+    return f"config '{key}': {which} has no such key (mode {whose}'s key: add {how})"
+
+
+def _schema_at(schema: Any, path: list[str]) -> Any:
+    for part in path:
+        if schema is None or not is_dataclass(schema):
+            return None
+        schema = _hints(schema).get(part)
+    return schema
+
+
+EXPLAINERS.append(explain_key_error)
 
 
 # ------------------------------------------------------------------ Default, A and B (the paper)
@@ -201,18 +289,155 @@ def _check_b(cfg: Cfg) -> None:
     _need(s2.margin_weight >= 0, "mode.stage2.margin_weight", f"must be >= 0, got {s2.margin_weight}")
 
 
-DEMOS = ("demos_path", "example")
-"""The keys of a mode that reads prior knowledge."""
+@dataclass
+class Stage1Config:
+    """Mode B stage 1: train on prior knowledge only, until behaviour converges.
 
-register_mode(ModeSpec("default", "Default", (StageSpec("default"),)))
+    The defaults are those with which stage 1 learned the lane change from the default prior
+    knowledge (docs/results/stage1-slow-check.md; docs/training.md, "Presets"): its own Adam at
+    1e-3, DQfD's margin loss at weight 3, and every 1,000 updates 40 greedy drives that stop it
+    at 35 of them (else at 30,000 updates) and keep the best weights: 78% of non-goal test
+    episodes survived and reached the target, 3 seeds (docs/results/issue20, section 6;
+    stopping at 75% within 20,000 updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
+
+    max_updates: int = 30_000
+    """Hard cap on stage-1 updates."""
+    check_every: int = 1000
+    """Updates between convergence checks."""
+    holdout_fraction: float = 0.1
+    """Share of demo transitions kept out of the buffer to measure action agreement."""
+    agreement: float = 0.9
+    """Stop when the greedy action equals the demo action on this share of held-out demos."""
+    plateau_checks: int = 4
+    """Stop when the mean TD loss improved less than ``plateau_tol`` (relative) over this many checks."""
+    plateau_tol: float = 0.02
+    """Relative loss improvement under which the loss counts as flat."""
+    criterion: str = "behaviour"
+    """agreement | plateau | agreement_or_plateau | behaviour | max_updates. ``behaviour``:
+    stop when ``drive_target`` of the drive episodes survive and reach the target lane."""
+    drive_episodes: int = 40
+    """Greedy non-goal episodes driven at every check (0: none): the behaviour itself, in
+    scenes of their own seed domain (not the test scenes). Needed by ``behaviour``."""
+    drive_seed: int = 0
+    """Base of the drive episodes' scene seeds."""
+    drive_target: float = 0.875
+    """``behaviour``: share of drive episodes that must both survive and reach the target (35 of
+    40: the drives still rose past 30 of 40, the earlier target 0.75)."""
+    keep_best: bool = True
+    """With drive episodes: stage 2 (and ``stage1.pt``) start from the checked weights that
+    drove best (most episodes surviving and reaching; ties: the later), not the last ones.
+    Imitation from few demos swings from check to check (docs/results/stage1-slow-check.md)."""
+    margin_weight: float = 3.0
+    """Weight of DQfD's large-margin loss on the demos in stage 1 (0: eq. (1) alone, the
+    paper's literal reading; with it alone the greedy agent drifts away from the demo actions,
+    see docs/results/stage1-slow-check.md)."""
+    margin: float = 0.8
+    """Margin of that loss [Q units]."""
+    lr: float | None = 1e-3
+    """Adam learning rate of stage 1 (None: ``agent.lr``). Stage 2 starts a fresh Adam at
+    ``agent.lr`` whatever this is. At 2.5e-4 stage 1 learned the steering too slowly
+    (docs/results/stage1-slow-check.md)."""
+    init: Any = None
+    """A mode B run folder (or its ``checkpoints/stage1.pt``) whose stage-1 weights this run's
+    stage 2 starts from, training no stage 1 of its own: one pretraining shared by stage-2
+    variants (exploration, budgets, ...). Its env config must equal this run's; the run's own
+    ``checkpoints/stage1.pt`` is a copy. Null: train stage 1 here."""
+
+
+@dataclass
+class Stage2Config:
+    """Mode B stage 2: double DQN from the stage-1 weights; by default the prior knowledge
+    stays at 10% of its buffer and batches with the margin loss on it (DQfD), which kept most
+    of what stage 1 learned (without it both scores dropped after the switch).
+    ``+experiment=paper``: plain double DQN as Default."""
+
+    eps_start: float = 0.3
+    """Stage 2 starts less random than a fresh agent: the stage-1 network already drives."""
+    eps_end: float = 0.05
+    """Final epsilon."""
+    eps_decay_frames: int = 50_000
+    """Env steps of the linear decay."""
+    demo_fraction: float = 0.1
+    """Share of stage 2's buffer (and of each stratified batch) that the prior knowledge keeps
+    holding, as in mode A (0: none, the paper's B: stage 2 trains as Default)."""
+    margin_weight: float = 3.0
+    """Weight of stage 1's large-margin loss (``stage1.margin``) on the demo items of stage 2's
+    batches, DQfD's remedy for the drop after pretraining (0: eq. (1) alone, the paper's B).
+    Acts only where ``demo_fraction > 0`` (with 0 no batch holds a demo). With both (0.1,
+    3) B kept most of what stage 1 learned: at 20,000 env steps, non-goal survival / goal 77 / 73
+    against 23 / 43 without (docs/results/issue20)."""
+
+
+@dataclass
+class DefaultModeConfig:
+    """Default's ``mode`` node: its name alone (no prior knowledge)."""
+
+    name: str = "default"
+    """default | A | B (``+mode=A|B``)."""
+
+
+@dataclass
+class DemoKeys:
+    """The keys of a mode that reads prior knowledge (A and B: their name first, then these)."""
+
+    name: str = ""
+    """default | A | B (``+mode=A|B``)."""
+    demos_path: Any = None
+    """Dataset folder of prior knowledge (None: the scripted driver's dataset of ``example``)."""
+    example: DemoRecipe = field(default_factory=DemoRecipe)
+    """How the prior knowledge is recorded when ``demos_path`` is null (recorded on first use,
+    cached under ``paths.data_dir``): the manoeuvre-focused recipe by default."""
+
+
+@dataclass
+class MarginConfig:
+    """Mode A's ``stage1``: only the margin of its large-margin loss (mode B's stage 1 has the
+    same key)."""
+
+    margin: float = 0.8
+    """Margin of the large-margin loss [Q units]."""
+
+
+@dataclass
+class ModeAConfig(DemoKeys):
+    """Mode A's ``mode`` node (``+mode=A``)."""
+
+    name: str = "A"
+    """default | A | B (``+mode=A|B``)."""
+    demo_fraction: float = 0.1
+    """Share of the buffer permanently held by prior knowledge."""
+    margin_weight: float = 3.0
+    """Weight of the large-margin loss (``stage1.margin``) on the demo items of each batch, as
+    DQfD (0: eq. (1) alone, the paper's A); mode B's is ``stage2.margin_weight``. At 20,000 env
+    steps A's non-goal goal rose from 0.7 to 19.0 with it, higher on every seed
+    (docs/results/issue20)."""
+    sampling: str = "stratified"
+    """Stratified (exactly round(demo_fraction x batch) demos per batch) or proportional
+    (uniform over the union: the demo count per batch is binomial)."""
+    stage1: MarginConfig = field(default_factory=MarginConfig)
+
+
+@dataclass
+class ModeBConfig(DemoKeys):
+    """Mode B's ``mode`` node (``+mode=B``)."""
+
+    name: str = "B"
+    """default | A | B (``+mode=A|B``)."""
+    sampling: str = "stratified"
+    """Stage 2's batches, where prior knowledge stays in its buffer: stratified (exactly
+    round(stage2.demo_fraction x batch) demos per batch) or proportional (binomial count)."""
+    stage1: Stage1Config = field(default_factory=Stage1Config)
+    stage2: Stage2Config = field(default_factory=Stage2Config)
+
+
+register_mode(ModeSpec("default", "Default", (StageSpec("default"),), schema=DefaultModeConfig))
 """Default: plain double DQN (eq. (1)), the agent's own data only."""
 
 register_mode(ModeSpec(
     "A", "A",
     (StageSpec("A", demo_share=lambda cfg: cfg.mode.demo_fraction,
                terms=lambda cfg: _margin(cfg.mode.margin_weight, cfg.mode.stage1.margin)),),
-    reads=("name", *DEMOS, "demo_fraction", "margin_weight", "sampling", "stage1.margin"),
-    check=_check_a))
+    schema=ModeAConfig, check=_check_a))
 """Mode A: prior knowledge permanently holds ``demo_fraction`` of the buffer, stratified
 batches, DQfD's margin loss on their demos (weight ``margin_weight``, 0: the paper's A)."""
 
@@ -225,8 +450,7 @@ register_mode(ModeSpec(
                terms=lambda cfg: _margin(cfg.mode.stage2.margin_weight, cfg.mode.stage1.margin),
                exploration=lambda cfg: (cfg.mode.stage2.eps_start, cfg.mode.stage2.eps_end,
                                         cfg.mode.stage2.eps_decay_frames))),
-    reads=("name", *DEMOS, "sampling", "stage1", "stage2"),
-    check=_check_b))
+    schema=ModeBConfig, check=_check_b))
 """Mode B: stage 1 (``B1``) trains on prior knowledge alone until its checks stop it; stage 2
 (``B2``) starts from its weights with a fresh Adam and trains as Default, keeping
 ``stage2.demo_fraction`` of the buffer for the prior knowledge with the margin loss on it

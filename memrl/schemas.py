@@ -150,21 +150,23 @@ def check_train(cfg: DictConfig) -> None:
     from memrl.modes import mode_of
 
     mode = mode_of(cfg)
-    demos = cfg.mode.get("demos_path")
+    demos = cfg.mode.demos_path if mode.needs_demos else None
     if mode.needs_demos and demos is not None and not Path(str(demos)).is_dir():
         raise config_error("mode.demos_path", f"no dataset folder {demos} (a folder made by "
                            "python -m memrl.record, or null for the scripted example)")
     if mode.needs_demos and demos is None:
         check_recipe(cfg.mode.get("example"), cfg.env, "mode.example")
-    init = cfg.mode.stage1.get("init") if "stage1" in cfg.mode else None
-    if init is not None and mode.pretrains:  # like every stage-1 key, read by pretraining modes only
+    # the offline stage's settings (mode B's stage1), where the mode has one
+    offline = [s.settings for s in mode.stages if s.settings is not None]
+    init = cfg.mode[offline[0]].get("init") if offline else None
+    if init is not None:
         from memrl.checkpoint import stage1_source
         from memrl.dqn.checkpoint import CheckpointError
 
         try:
             stage1_source(str(init), cfg.env, cfg.network)
         except CheckpointError as e:
-            raise config_error("mode.stage1.init", str(e)) from None
+            raise config_error(f"mode.{offline[0]}.init", str(e)) from None
 
 
 def check_resume(cfg: DictConfig) -> None:

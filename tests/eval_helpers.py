@@ -13,7 +13,7 @@ from memrl.checkpoint import save_qnet
 from memrl.evaluation.protocol import EpisodeRecord, ProtocolConfig, scenario_seeds
 from memrl.evaluation.results import EvalResult, write_result
 from memrl.modules.qnet import QNetwork
-from tests.helpers import TINY
+from tests.helpers import tiny
 
 Compose = Callable[..., DictConfig]
 
@@ -23,7 +23,7 @@ def fake_run(root: Path, compose_cfg: Compose, mode: str = "default", seed: int 
     """A finished training run folder: the real composed train config, an untrained network
     (seeded) as ``checkpoints/final.pt`` and ``episodes`` synthetic rows of ``episodes.csv``."""
     run = root / f"{mode}_{seed}"
-    overrides = [*TINY, f"seed={seed}", *env] + ([f"+mode={mode}"] if mode != "default" else [])
+    overrides = [*tiny(mode), f"seed={seed}", *env]
     cfg = compose_cfg("train", overrides)
     cfg.paths.output_dir = str(run)
     run.mkdir(parents=True)

@@ -19,10 +19,28 @@ TINY = [
     "+experiment=smoke", "total_frames=null", "total_episodes=3", "env.duration=30",
     "agent.warmup_frames=20", "agent.batch_size=8", "agent.train_every=4", "log_every=5",
     "buffer.capacity=400", "checkpoint_every=1", "progress=false", "logger=none",
-    "mode.stage1.max_updates=12", "mode.stage1.check_every=4",
-    "mode.stage1.criterion=agreement_or_plateau", "mode.stage1.drive_episodes=0",
 ]
-"""Overrides that make a training run take seconds."""
+"""Overrides that make a training run take seconds (any mode: no mode key)."""
+
+TINY_STAGE1 = ["mode.stage1.max_updates=12", "mode.stage1.check_every=4",
+               "mode.stage1.criterion=agreement_or_plateau", "mode.stage1.drive_episodes=0"]
+"""The seconds-long stage-1 stop rule, for a mode whose ``mode`` node has ``stage1`` settings."""
+
+
+def tiny(mode: str | None = None) -> list[str]:
+    """:data:`TINY` for ``mode`` (None or default: TINY itself): TINY + :func:`tiny_mode`."""
+    return [*TINY, *tiny_mode(mode)]
+
+
+def tiny_mode(mode: str | None = None) -> list[str]:
+    """The overrides that select ``mode`` (none for None or default) and, when the mode has an
+    offline stage, :data:`TINY_STAGE1`."""
+    from memrl.modes import MODES
+
+    if mode in (None, "default"):
+        return []
+    spec = MODES[str(mode)]
+    return [*spec.overrides, *(TINY_STAGE1 if spec.pretrains else [])]
 
 
 class KeepGoing(DrivingPolicy):

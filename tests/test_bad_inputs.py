@@ -62,6 +62,9 @@ ROWS = [
     ("train", ["+mode=B", "mode.stage2.demo_fraction=1.5"], "mode.stage2.demo_fraction"),
     ("train", ["+mode=B", "mode.stage2.margin_weight=-1"], "mode.stage2.margin_weight"),
     ("train", ["+mode=A", "mode.margin_weight=-1"], "mode.margin_weight"),
+    # a key of another mode: one line naming the mode that has it
+    ("train", ["mode.stage1.lr=1e-3"], "'mode.stage1.lr': mode default has no such key (mode B's"),
+    ("train", ["+mode=B", "mode.demo_fraction=0.2"], "'mode.demo_fraction': mode B has no such key"),
     ("train", ["total_frames=-5"], "total_frames"),
     ("train", ["total_frames=0"], "total_frames"),
     ("train", ["total_episodes=0"], "total_episodes"),
@@ -347,6 +350,8 @@ CLI_ROWS = [
     (["memrl.train", "env.vehicles_count=[5,0]"], "vehicles_count"),
     (["memrl.train", "env.lane_width=inf"], "lane_width"),
     (["memrl.train", "+mode=B", "mode.demos_path=/nonexistent/demos"], "mode.demos_path"),
+    (["memrl.train", "mode.stage1.lr=1e-3"],
+     "config 'mode.stage1.lr': mode default has no such key (mode B's key: add +mode=B)"),
     (["memrl.record", "episodes=0"], "'episodes'"),
     (["memrl.bench", "nope"], "benchmarks"),
     (["memrl.study", "study.train_overrides=['agent.lrr=1']"], "agent.lrr"),

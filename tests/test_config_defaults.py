@@ -67,7 +67,7 @@ def test_presets_win_over_the_defaults(compose_cfg):
     assert paper.env.bev.path_length == 0
     # the paper's B: stage 2 trains as Default; the paper's A: eq. (1) alone
     assert paper.mode.stage2.demo_fraction == paper.mode.stage2.margin_weight == 0
-    assert paper.mode.margin_weight == 0
+    assert compose_cfg("train", ["+mode=A", "+experiment=paper"]).mode.margin_weight == 0
     ours = compose_cfg("train", ["+mode=B"]).mode
     assert (ours.stage2.demo_fraction, ours.stage2.margin_weight) == (0.1, 3.0)
     assert compose_cfg("train", ["+mode=A"]).mode.margin_weight == 3.0

@@ -170,8 +170,13 @@ def test_documented_command_composes(page, line, cmd):
                 extra = [list(base)]
                 variants = OmegaConf.to_container(study.variants, resolve=False) if study.variants else {}
                 extra += [list(base) + list(v) for v in variants.values()]
-                for train in extra:
-                    compose_once("train", [str(o) for o in train])
+                from memrl.modes import by_label
+
+                for train in extra:  # as the study composes each mode's cells: its own mode keys
+                    for mode in study.modes:
+                        spec = by_label(str(mode))
+                        compose_once("train", [*spec.own_overrides([str(o) for o in train]),
+                                               *spec.overrides])
 
 
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)|<img[^>]*\ssrc=\"([^\"]+)\"")

@@ -13,7 +13,7 @@ import pytest
 from memrl.dqn.loop import Trainer
 from memrl.loggers import LoggerBackendMissing, check_backend, flat_hparams, run_name
 from memrl.train import train
-from tests.helpers import TINY, csv_rows
+from tests.helpers import TINY, csv_rows, tiny
 
 TIMING = ("train/updates_per_s", "train/frames_per_s", "stage1/updates_per_s", "stage1/frames_per_s")
 """Points whose values depend on the machine's speed (their steps must still match)."""
@@ -75,7 +75,7 @@ def test_mode_b_logs_stage1_loss_agreement_and_drives_against_its_updates(
 
     monkeypatch.setattr(stage1, "drive_check",
                         lambda *a, **k: {"survived": 3, "reached": 2, "both": 1})
-    cfg = compose_cfg("train", TINY + ["+mode=B", "logger=csv", "mode.stage1.drive_episodes=4",
+    cfg = compose_cfg("train", tiny("B") + ["logger=csv", "mode.stage1.drive_episodes=4",
                                        "mode.stage1.criterion=max_updates"])
     summary = train(cfg, tmp_path, demos=demos)
     got = points(tmp_path, "csv")
@@ -134,9 +134,8 @@ class Killed(RuntimeError):
 @pytest.mark.parametrize("mode", [None, "B"])
 def test_a_resumed_run_logs_each_point_once_as_the_uninterrupted_run(
         compose_cfg, tmp_path, demos, monkeypatch, backend, mode):
-    extra = ["total_episodes=6", "checkpoint_every=2", f"logger={backend}"] + (
-        [f"+mode={mode}"] if mode else [])
-    train(compose_cfg("train", TINY + extra), tmp_path / "full", demos=demos)
+    extra = ["total_episodes=6", "checkpoint_every=2", f"logger={backend}"]
+    train(compose_cfg("train", tiny(mode) + extra), tmp_path / "full", demos=demos)
     original = Trainer._episodes_done
 
     def dying(self, ends):  # killed after episode 5: it (after the checkpoint at 4) is redone
@@ -146,12 +145,12 @@ def test_a_resumed_run_logs_each_point_once_as_the_uninterrupted_run(
 
     monkeypatch.setattr(Trainer, "_episodes_done", dying)
     with pytest.raises(Killed):
-        train(compose_cfg("train", TINY + extra), tmp_path / "cut", demos=demos)
+        train(compose_cfg("train", tiny(mode) + extra), tmp_path / "cut", demos=demos)
     monkeypatch.setattr(Trainer, "_episodes_done", original)
     before = points(tmp_path / "cut", backend)
     assert [s for s, _ in before["episode/return"]] == [
         int(r["env_steps"]) for r in rows(tmp_path / "cut" / "episodes.csv")[:4]]
-    train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
+    train(compose_cfg("train", tiny(mode) + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
 
     full, resumed = points(tmp_path / "full", backend), points(tmp_path / "cut", backend)
     assert sorted(resumed) == sorted(full)

@@ -3,31 +3,52 @@ the paper's modes are declared once and everything else asks the registry."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import Any
+
 import pytest
 import torch
 from hydra.core.config_store import ConfigStore
 
+from memrl.data.recipe import DemoRecipe
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.loop import Trainer
 from memrl.dqn.losses import MarginTerm, TDTerm
 from memrl.modes import MODES, ModeSpec, StageSpec, by_label, register_mode, used
 from memrl.schemas import STUDY_MODES
 from memrl.train import train
-from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows, train_killed_after
+from tests.helpers import (
+    TINY,
+    assert_same_final_weights_and_agent_buffers,
+    csv_rows,
+    tiny_mode,
+    train_killed_after,
+)
+
+
+@dataclass
+class ToyModeConfig:
+    """The toy mode's ``mode`` node: its keys and their defaults."""
+
+    name: str = "toy"
+    demos_path: Any = None
+    example: DemoRecipe = field(default_factory=DemoRecipe)
+    sampling: str = "stratified"
 
 
 @pytest.fixture
 def toy_mode():
     """``toy``: one online stage whose buffer keeps half of it for the prior knowledge, with a
-    margin term of weight 1 and its own epsilon schedule. Its config and its stage list are
-    all there is to it."""
+    margin term of weight 1 and its own epsilon schedule. Its schema, its stage list and its
+    ``+mode=toy`` (what ``conf/mode/toy.yaml`` would hold) are all there is to it."""
     spec = register_mode(ModeSpec(
         "toy", "Toy",
         (StageSpec("toy_online", demo_share=lambda cfg: 0.5,
                    terms=lambda cfg: (MarginTerm(1.0, 0.5),),
                    exploration=lambda cfg: (0.5, 0.05, 300)),),
-        reads=("name", "demos_path", "example", "sampling")))
-    ConfigStore.instance().store(group="mode", name="toy", node={"name": "toy"})
+        schema=ToyModeConfig))
+    ConfigStore.instance().store(group="mode", name="toy", package="_global_",
+                                 node={"defaults": [{"override /mode_schema": "toy"}]})
     yield spec
     del MODES["toy"]
 
@@ -131,15 +152,15 @@ def test_augment_shifts_sampled_batches_only_and_runs_repeat_exactly(compose_cfg
 
 SHORT = ["total_frames=null", "total_episodes=2", "env.duration=30", "agent.warmup_frames=20",
          "agent.batch_size=8", "buffer.capacity=400", "checkpoint_every=1", "progress=false",
-         "logger=none", "log_every=5", "mode.stage1.max_updates=12", "mode.stage1.check_every=4",
-         "mode.stage1.criterion=agreement_or_plateau", "mode.stage1.drive_episodes=0"]
+         "logger=none", "log_every=5"]
 
 
 def reference_margin_weight(cfg, stage: str) -> float:
     """The margin weight each stage used before modes were declared (the old builder's rule)."""
     m = cfg.mode
-    return {"default": 0.0, "A": float(m.margin_weight), "B1": float(m.stage1.margin_weight),
-            "B2": float(m.stage2.margin_weight) if m.stage2.demo_fraction > 0 else 0.0}[stage]
+    return {"default": lambda: 0.0, "A": lambda: float(m.margin_weight),
+            "B1": lambda: float(m.stage1.margin_weight),
+            "B2": lambda: float(m.stage2.margin_weight) if m.stage2.demo_fraction > 0 else 0.0}[stage]()
 
 
 @pytest.mark.parametrize("preset", [["+experiment=smoke"], ["+experiment=paper"]])
@@ -151,7 +172,7 @@ def test_the_stage_losses_equal_the_formula_before_loss_terms(compose_cfg, tmp_p
     from the weights before the update on the same batch (bit for bit)."""
     from memrl.dqn.learner import Learner
 
-    cfg = compose_cfg("train", preset + SHORT + ([f"+mode={mode}"] if mode else []))
+    cfg = compose_cfg("train", preset + SHORT + tiny_mode(mode))
     seen: list[tuple[str, dict, object, float]] = []
     original = Learner._update
 
@@ -215,3 +236,71 @@ def test_a_demo_only_batch_costs_one_online_forward_and_keeps_the_margin_gradien
     separate.backward()
     for name, p in learner.qnet.named_parameters():
         assert torch.allclose(p.grad, shared[name], rtol=1e-4, atol=1e-7), name
+
+
+SCHEMA_KEYS = {
+    "default": {"name"},
+    "A": {"name", "demos_path", "example", "demo_fraction", "margin_weight", "sampling", "stage1"},
+    "B": {"name", "demos_path", "example", "sampling", "stage1", "stage2"},
+}
+"""Each paper mode's top-level ``mode`` keys (A's ``stage1`` is the margin of its margin loss)."""
+
+
+@pytest.mark.parametrize("preset", [None, "paper", "smoke", "imitation"])
+@pytest.mark.parametrize("mode", ["default", "A", "B"])
+def test_the_mode_node_holds_only_the_selected_modes_keys_in_either_order(compose_cfg, mode, preset):
+    """The composed ``mode`` node is the mode's own schema: its keys and no other, typed by its
+    dataclass; ``+mode`` and ``+experiment`` give the same node in either order."""
+    from omegaconf import OmegaConf
+
+    sel = list(MODES[mode].overrides)
+    exp = [f"+experiment={preset}"] if preset else []
+    first, second = (compose_cfg("train", order) for order in (sel + exp, exp + sel))
+    assert set(first.mode) == SCHEMA_KEYS[mode]
+    assert OmegaConf.get_type(first.mode) is MODES[mode].schema
+    assert OmegaConf.to_container(first) == OmegaConf.to_container(second)
+    if mode == "A":
+        assert set(first.mode.stage1) == {"margin"}
+    # the preset's values of the mode's keys are there, whatever the order
+    if preset == "paper" and mode != "default":
+        assert first.mode.example.episodes == 10
+        assert (first.mode.margin_weight if mode == "A" else first.mode.stage2.margin_weight) == 0
+    if preset == "smoke" and mode == "B":
+        assert first.mode.stage1.max_updates == 200 and first.mode.example.episodes == 12
+
+
+@pytest.mark.parametrize(("overrides", "line"), [
+    (["mode.stage1.lr=1e-3"],
+     "config 'mode.stage1.lr': mode default has no such key (mode B's key: add +mode=B)"),
+    (["+experiment=paper", "mode.demo_fraction=0.2"],
+     "config 'mode.demo_fraction': mode default has no such key (mode A's key: add +mode=A)"),
+    (["+mode=A", "mode.stage2.eps_start=0.5"],
+     "config 'mode.stage2.eps_start': mode A has no such key (mode B's key: add +mode=B)"),
+    (["+mode=B", "mode.margin_weight=0"],
+     "config 'mode.margin_weight': mode B has no such key (mode A's key: add +mode=A)"),
+    (["mode.example.episodes=3"],
+     "config 'mode.example.episodes': mode default has no such key (mode A and B's key: add "
+     "+mode=A or +mode=B)"),
+])
+def test_a_key_of_another_mode_is_refused_in_one_line_naming_the_mode_that_has_it(
+        compose_cfg, overrides, line):
+    from hydra.errors import HydraException
+
+    from memrl.errors import one_line
+
+    with pytest.raises(HydraException) as err:
+        compose_cfg("train", overrides)
+    assert one_line(err.value) == line
+
+
+def test_a_study_gives_each_mode_only_its_own_mode_keys():
+    """A study's train overrides apply to every mode: each keeps the ``mode`` keys it has; a
+    key that no mode has is kept (composition refuses it, naming it)."""
+    given = ["seed=1", "mode.stage1.max_updates=4", "mode.demo_fraction=0.2", "mode.example.episodes=3",
+             "mode.stage1.margin=0.5", "mode.stage1.nokey=1"]
+    assert MODES["default"].own_overrides(given) == ["seed=1", "mode.stage1.nokey=1"]
+    assert MODES["A"].own_overrides(given) == ["seed=1", "mode.demo_fraction=0.2", "mode.example.episodes=3",
+                                              "mode.stage1.margin=0.5", "mode.stage1.nokey=1"]
+    assert MODES["B"].own_overrides(given) == ["seed=1", "mode.stage1.max_updates=4",
+                                              "mode.example.episodes=3", "mode.stage1.margin=0.5",
+                                              "mode.stage1.nokey=1"]

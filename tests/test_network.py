@@ -25,7 +25,7 @@ from memrl.modules.opponents import LearnedCarController
 from memrl.modules.policy import GreedyPolicy
 from memrl.modules.qnet import TABLE1, DuelingQNetwork, QNetwork, build_qnet
 from memrl.train import train
-from tests.helpers import TINY
+from tests.helpers import TINY, tiny
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -237,14 +237,14 @@ def test_a_trained_network_loads_back_through_evaluate_deploy_and_the_pool(
         ref.load_state_dict(at_switch.qnet.state_dict())
         assert torch.equal(load_stage1_qnet(run)(x), ref(x))
         # a Table I run may not resume it, nor start stage 2 from its stage 1
-        table1 = compose_cfg("train", TINY + ["+mode=B"])
+        table1 = compose_cfg("train", tiny("B"))
         with pytest.raises(ckpt.CheckpointError, match="network._target_"):
             ckpt.load_state(ckpt.find(run), table1)
         from memrl.schemas import check_train
 
         with pytest.raises(ValueError, match=r"config 'mode.stage1.init': .*stage1.pt: its network "
                                              r"DuelingQNetwork\(\) is not this run's QNetwork\(\)"):
-            check_train(compose_cfg("train", TINY + ["+mode=B", f"mode.stage1.init={run}"]))
+            check_train(compose_cfg("train", tiny("B") + [f"mode.stage1.init={run}"]))
 
 
 def test_a_checkpoint_saved_before_the_network_key_resumes_as_table1(compose_cfg, tmp_path):

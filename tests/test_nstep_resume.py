@@ -6,7 +6,13 @@ import pytest
 
 from memrl.dqn import checkpoint as ckpt
 from memrl.train import train
-from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows, train_killed_after
+from tests.helpers import (
+    TINY,
+    assert_same_final_weights_and_agent_buffers,
+    csv_rows,
+    tiny_mode,
+    train_killed_after,
+)
 
 
 def _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch, extra):
@@ -29,7 +35,7 @@ BASE = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3", "agent.n_st
 def test_n_step_run_killed_and_resumed_equals_an_uninterrupted_one(
         compose_cfg, tmp_path, demos, monkeypatch, mode):
     _kill_and_resume(compose_cfg, tmp_path, demos, monkeypatch,
-                     BASE + ([f"+mode={mode}"] if mode else []))
+                     BASE + tiny_mode(mode))
 
 
 def test_strided_n_step_run_killed_and_resumed_equals_an_uninterrupted_one(

@@ -13,7 +13,7 @@ import pytest
 
 from memrl.dqn import checkpoint as ckpt
 from memrl.errors import USAGE_EXIT, is_user_error, one_line
-from tests.helpers import TINY
+from tests.helpers import TINY, tiny
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -109,7 +109,7 @@ def test_stage1_init_from_a_truncated_stage1_pt_is_refused_naming_it(tmp_path):
     source.parent.mkdir(parents=True)
     torch.save({"loss_module": {"w": torch.zeros(1000)}, "stage1": {}}, source)
     truncate(source, source.stat().st_size // 2)
-    proc = cli(["memrl.train", *TINY, "+mode=B", f"mode.stage1.init={tmp_path / 'b_run'}"], tmp_path)
+    proc = cli(["memrl.train", *tiny("B"), f"mode.stage1.init={tmp_path / 'b_run'}"], tmp_path)
     refused(proc, str(source))
     assert not (tmp_path / "outputs" / "train" / "runs").exists() or \
         list((tmp_path / "outputs" / "train" / "runs").iterdir()) == []
@@ -120,7 +120,7 @@ def test_a_stage2_resume_without_a_sound_stage1_pt_is_refused(compose_cfg, tmp_p
     from memrl.train import train
 
     run = tmp_path / "b"
-    train(compose_cfg("train", TINY + ["+mode=B", "total_episodes=2"]), run, demos=demos)
+    train(compose_cfg("train", tiny("B") + ["total_episodes=2"]), run, demos=demos)
     stage1 = run / "checkpoints" / "stage1.pt"
     assert stage1.is_file()
     if damage == "deleted":
@@ -129,7 +129,7 @@ def test_a_stage2_resume_without_a_sound_stage1_pt_is_refused(compose_cfg, tmp_p
         truncate(stage1, 50)
     before = snapshot(run)
     with pytest.raises(ckpt.CheckpointError) as info:
-        train(compose_cfg("train", TINY + ["+mode=B", "total_episodes=3", f"resume={run}"]), demos=demos)
+        train(compose_cfg("train", tiny("B") + ["total_episodes=3", f"resume={run}"]), demos=demos)
     assert one_line(info.value).startswith(str(stage1))
     assert snapshot(run) == before
 

@@ -7,15 +7,16 @@ import ast
 import dataclasses
 from pathlib import Path
 
-from memrl.dqn.config import AgentConfig, BufferConfig, ModeConfig, Stage1Config, Stage2Config
+from memrl.dqn.config import AgentConfig, BufferConfig
 from memrl.envs.config import LaneChangeConfig
 from memrl.evaluation.periodic_config import PeriodicEvalConfig
 from memrl.evaluation.protocol import ProtocolConfig
+from memrl.modes import MODES, Stage1Config, Stage2Config
 from memrl.modules.network_config import NetworkConfig
 
 PACKAGE = Path(__file__).resolve().parents[1] / "memrl"
-SCHEMAS = (AgentConfig, BufferConfig, ModeConfig, Stage1Config, Stage2Config, LaneChangeConfig,
-           NetworkConfig, PeriodicEvalConfig, ProtocolConfig)
+SCHEMAS = (AgentConfig, BufferConfig, *(m.schema for m in MODES.values()), Stage1Config, Stage2Config,
+           LaneChangeConfig, NetworkConfig, PeriodicEvalConfig, ProtocolConfig)
 KEYS = {f.name for schema in SCHEMAS for f in dataclasses.fields(schema)}
 
 STORED_FILE_READERS = {

@@ -400,10 +400,12 @@ def test_adding_or_changing_a_variant_of_a_study_needs_allow_changes(tmp_path, c
 
 def test_a_run_saved_before_the_variant_key_still_resumes(compose_cfg):
     from memrl.dqn.checkpoint import comparable, config_diff, with_legacy_values
+    from memrl.modes import MODES, used
 
-    cfg = compose_cfg("train", TRAIN)
+    cfg = compose_cfg("train", MODES["default"].own_overrides(TRAIN))  # a Default cell's config
     old = {k: v for k, v in comparable(cfg).items() if k != "variant"}  # a checkpoint's config then
-    assert cfg.variant is None and config_diff(with_legacy_values(old), comparable(cfg)) == []
+    # compared as a resume compares them: the keys the run's mode reads (memrl.modes.used)
+    assert cfg.variant is None and config_diff(used(with_legacy_values(old)), used(comparable(cfg))) == []
 
 
 def test_a_study_continues_an_earlier_studys_runs_to_a_bigger_budget(tmp_path, compose_cfg):

@@ -6,19 +6,20 @@ import json
 
 import pytest
 import torch
+from hydra.errors import HydraException
 
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.loop import Trainer
-from memrl.errors import UserError
+from memrl.errors import UserError, one_line
 from memrl.train import train
-from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
+from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows, tiny
 
 rows = csv_rows
 
 
 @pytest.mark.parametrize("mode", [None, "A", "B"])
 def test_smoke_run_of_each_mode_writes_its_outputs(compose_cfg, tmp_path, demos, mode):
-    overrides = TINY + ([f"+mode={mode}"] if mode else [])
+    overrides = tiny(mode)
     cfg = compose_cfg("train", overrides)
     summary = train(cfg, tmp_path, demos=demos if mode else None)
     assert summary.episodes == 3 and summary.updates > 0
@@ -42,7 +43,7 @@ def test_smoke_run_of_each_mode_writes_its_outputs(compose_cfg, tmp_path, demos,
 
 def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
         compose_cfg, tmp_path, demos):
-    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=agreement",
+    cfg = compose_cfg("train", tiny("B") + ["mode.stage1.criterion=agreement",
                                        "mode.stage1.agreement=0.0", "mode.stage1.max_updates=100",
                                        "mode.stage1.lr=0.003"])
     trainer = Trainer(cfg, tmp_path, demos)
@@ -68,7 +69,7 @@ def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
 
 
 def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, demos):
-    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=max_updates",
+    cfg = compose_cfg("train", tiny("B") + ["mode.stage1.criterion=max_updates",
                                        "mode.stage1.max_updates=6"])
     trainer = Trainer(cfg, tmp_path, demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
@@ -82,7 +83,7 @@ def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, 
 def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg, tmp_path, demos):
     """mode.stage1.init: stage 2 starts from the named run's stage-1 weights (online and
     target), with a fresh Adam, and runs the same stage-2 schedule as that run did."""
-    b = TINY + ["+mode=B", "mode.stage1.criterion=max_updates"]
+    b = tiny("B") + ["mode.stage1.criterion=max_updates"]
     source = train(compose_cfg("train", b), tmp_path / "src", demos=demos)
     src_updates = source.stage1["updates"]
     assert src_updates == 12
@@ -113,12 +114,14 @@ def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg
             ([f"mode.stage1.init={tmp_path / 'nothing'}"], "no stage-1 network"),
             (["env.duration=31", f"mode.stage1.init={tmp_path / 'src'}"], "another env config")):
         with pytest.raises(ValueError, match=f"config 'mode.stage1.init': .*{match}"):
-            train(compose_cfg("train", TINY + ["+mode=B", *overrides]), tmp_path / "bad", demos=demos)
+            train(compose_cfg("train", tiny("B") + [*overrides]), tmp_path / "bad", demos=demos)
         assert not (tmp_path / "bad").exists()
-    # like every stage-1 key, Default does not use it (a study's variant applies to every mode)
-    default = train(compose_cfg("train", TINY + [f"mode.stage1.init={tmp_path / 'nothing'}"]),
-                    tmp_path / "default")
-    assert default.mode == "default" and default.stage1["updates"] == 0
+    # like every stage-1 key, Default has none: refused at composition, naming the mode that has it
+    # (a study's train overrides and variants give each mode only its own keys: tests/test_study.py)
+    with pytest.raises(HydraException) as err:
+        compose_cfg("train", TINY + [f"mode.stage1.init={tmp_path / 'nothing'}"])
+    assert one_line(err.value) == ("config 'mode.stage1.init': mode default has no such key "
+                                   "(mode B's key: add +mode=B)")
 
 
 class Killed(RuntimeError):
@@ -128,9 +131,8 @@ class Killed(RuntimeError):
 @pytest.mark.parametrize(("mode", "overlap"), [(None, True), (None, False), ("A", True)])
 def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_path, demos,
                                                             monkeypatch, mode, overlap):
-    extra = ["total_episodes=6", "checkpoint_every=2", f"agent.overlap={overlap}"] + (
-        [f"+mode={mode}"] if mode else [])
-    cfg = compose_cfg("train", TINY + extra)
+    extra = ["total_episodes=6", "checkpoint_every=2", f"agent.overlap={overlap}"]
+    cfg = compose_cfg("train", tiny(mode) + extra)
     full = train(cfg, tmp_path / "full", demos=demos)
 
     # Kill after episode 5: episodes 5 was done after the checkpoint at 4 and is redone.
@@ -147,7 +149,7 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(compose_cfg, tmp_pat
     monkeypatch.setattr(Trainer, "_episodes_done", original)
     assert len(rows(tmp_path / "cut" / "episodes.csv")) == 5
     before = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")["wall_s"]
-    resumed_cfg = compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"])
+    resumed_cfg = compose_cfg("train", tiny(mode) + extra + [f"resume={tmp_path / 'cut'}"])
     resumed = train(resumed_cfg, demos=demos)
 
     assert resumed.resumed_from_episode == 4
@@ -169,7 +171,7 @@ def test_mode_b_on_n_envs_killed_in_stage_1_resumes_exactly(compose_cfg, tmp_pat
                                                             monkeypatch):
     """A checkpoint made in stage 1 holds no collector state (its envs have not started): with
     N > 1 envs the resumed run starts stage 2 on fresh envs, as the uninterrupted run does."""
-    cfg = compose_cfg("train", TINY + ["+mode=B", "env.num_envs=2", "total_episodes=null",
+    cfg = compose_cfg("train", tiny("B") + ["env.num_envs=2", "total_episodes=null",
                                        "total_frames=48", "mode.stage1.criterion=max_updates"])
     full = train(cfg, tmp_path / "full", demos=demos)
     original = Trainer.save_checkpoint
@@ -183,8 +185,8 @@ def test_mode_b_on_n_envs_killed_in_stage_1_resumes_exactly(compose_cfg, tmp_pat
     with pytest.raises(Killed):
         train(cfg, tmp_path / "cut", demos=demos)
     monkeypatch.setattr(Trainer, "save_checkpoint", original)
-    resumed = train(compose_cfg("train", TINY + [
-        "+mode=B", "env.num_envs=2", "total_episodes=null", "total_frames=48",
+    resumed = train(compose_cfg("train", tiny("B") + [
+        "env.num_envs=2", "total_episodes=null", "total_frames=48",
         "mode.stage1.criterion=max_updates", f"resume={tmp_path / 'cut'}"]), demos=demos)
     assert resumed.stage1["updates"] == full.stage1["updates"] == 12
     assert (resumed.frames, resumed.episodes, resumed.updates) == (full.frames, full.episodes, full.updates)
@@ -200,13 +202,33 @@ def test_resume_refuses_a_checkpoint_from_another_config(compose_cfg, tmp_path):
         train(other)
 
 
-def test_a_default_run_resumes_whatever_the_mode_keys_it_never_reads(compose_cfg, tmp_path):
-    """Default reads no prior-knowledge key: changing one does not stop it from resuming; the
-    same change to an A run is refused, naming the key."""
+OLD_UNION = {"demos_path": None, "demo_fraction": 0.3, "margin_weight": 2.0, "sampling": "proportional",
+             "example": {"episodes": 7},
+             "stage1": {"max_updates": 7, "lr": 0.01, "margin": 0.8, "init": None},
+             "stage2": {"demo_fraction": 0.2, "eps_start": 0.5}}
+"""Keys of every mode, as the ``mode`` node of a run made before each mode had its own schema
+held them (at values other than the defaults)."""
+
+
+def with_old_union(mode: dict) -> dict:
+    """``mode`` as an older run stored it: its own values, plus every other mode's keys."""
+    def merge(old: dict, own: dict) -> dict:
+        return {**old, **{k: merge(old[k], v) if isinstance(v, dict) and isinstance(old.get(k), dict)
+                          else v for k, v in own.items()}}
+    return merge(OLD_UNION, mode)
+
+
+def test_a_default_run_made_when_the_mode_node_held_every_modes_keys_resumes(compose_cfg, tmp_path):
+    """Default has no prior-knowledge key (giving one is refused at composition, naming the mode
+    that has it); a run made when its ``mode`` node held them all resumes: they are not its
+    keys. A change to an A run's own key is refused, naming the key."""
     train(compose_cfg("train", TINY + ["total_episodes=1"]), tmp_path)
-    unread = ["mode.demo_fraction=0.3", "mode.stage1.lr=0.01", "mode.stage2.demo_fraction=0.2",
-              "mode.margin_weight=2", "mode.example.episodes=7"]
-    resumed = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}", *unread]))
+    state_file = tmp_path / "checkpoints" / "last" / "state.pt"
+    state = torch.load(state_file, weights_only=False)
+    state["config"]["mode"] = with_old_union(state["config"]["mode"])
+    torch.save(state, state_file)
+    ckpt.write_manifest(state_file.parent)
+    resumed = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
     assert resumed.resumed_from_episode == 1 and resumed.episodes == 2
     cfg = compose_cfg("train", TINY + ["total_episodes=1", "+mode=A"])
     other = compose_cfg("train", TINY + ["total_episodes=1", "+mode=A", "mode.demo_fraction=0.3"])
@@ -214,29 +236,27 @@ def test_a_default_run_resumes_whatever_the_mode_keys_it_never_reads(compose_cfg
     assert diff == ["mode.demo_fraction: 0.1 (checkpoint) vs 0.3 (now)"]
 
 
-@pytest.mark.parametrize(("mode", "unread", "read"), [
-    ("A", ["mode.stage1.max_updates=7", "mode.stage1.lr=0.01", "mode.stage2.demo_fraction=0.2",
-           "mode.stage2.eps_start=0.5"], "mode.stage1.margin=0.5"),
-    ("B", ["mode.demo_fraction=0.3", "mode.margin_weight=2"], "mode.stage1.max_updates=7"),
-])
-def test_a_prior_knowledge_run_ignores_the_other_modes_keys(compose_cfg, mode, unread, read):
-    """Mode A reads no stage key but the margin of its margin loss; mode B not A's two keys:
-    changing those keeps the config the same for resuming and for report rows."""
-    base = TINY + ["total_episodes=1", f"+mode={mode}"]
-    same = [compose_cfg("train", base + extra) for extra in ([], unread)]
-    used = [ckpt.used(ckpt.comparable(c)) for c in same]
-    assert ckpt.config_diff(*used) == []
+@pytest.mark.parametrize(("mode", "read"), [("A", "mode.stage1.margin=0.5"),
+                                            ("B", "mode.stage1.max_updates=7")])
+def test_a_prior_knowledge_run_ignores_the_other_modes_keys_of_an_older_run(compose_cfg, mode, read):
+    """Mode A has no stage key but the margin of its margin loss; mode B not A's two keys: the
+    values an older run's union ``mode`` node held for those keep the config the same for
+    resuming and for report rows; a change to a key of the mode's own is a difference."""
+    base = tiny(mode) + ["total_episodes=1"]
+    now = ckpt.comparable(compose_cfg("train", base))
+    old = {**now, "mode": with_old_union(now["mode"])}
+    assert set(old["mode"]) > set(now["mode"])
+    assert ckpt.config_diff(ckpt.used(old), ckpt.used(now)) == []
     key, value = read.split("=")
     other = ckpt.used(ckpt.comparable(compose_cfg("train", base + [read])))
-    assert [d.split(":")[0] for d in ckpt.config_diff(used[0], other)] == [key]
+    assert [d.split(":")[0] for d in ckpt.config_diff(ckpt.used(old), other)] == [key]
 
 
 def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(compose_cfg,
                                                                             tmp_path):
     """A checkpoint whose config predates agent.precision/agent.overlap: resuming it with the
     new defaults is refused naming both; with the old behaviour's values it resumes."""
-    legacy = ["agent.precision=float32", "agent.overlap=false", "env.bev.path_length=0",
-              "mode.stage1.lr=null"]
+    legacy = ["agent.precision=float32", "agent.overlap=false", "env.bev.path_length=0"]
     train(compose_cfg("train", TINY + ["total_episodes=1", *legacy]), tmp_path)
     state_file = tmp_path / "checkpoints" / "last" / "state.pt"
     state = torch.load(state_file, weights_only=False)
@@ -244,7 +264,7 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
         del state["config"]["agent"][key]
     del state["config"]["env"]["bev"]["path_length"]
     del state["config"]["env"]["bev"]["path_time"]  # a later key, at its default: no difference
-    del state["config"]["mode"]["stage1"]["lr"]
+    state["config"]["mode"]["stage1"] = {"max_updates": 30000}  # its mode node held every mode's keys
     del state["wall_s"]  # and the record of the run's training time
     torch.save(state, state_file)
     (state_file.parent / ckpt.MANIFEST).unlink()  # such checkpoints predate the manifest too
@@ -274,9 +294,11 @@ def test_checkpoint_from_before_the_demo_recipe_asks_for_the_old_example(compose
         train(compose_cfg("train", TINY + ["total_episodes=1", *extra]), run, demos=demos)
         state_file = run / "checkpoints" / "last" / "state.pt"
         state = torch.load(state_file, weights_only=False)
-        del state["config"]["mode"]["example"]
+        # an older checkpoint: its mode node held every mode's keys, but no example yet
+        older = with_old_union(state["config"]["mode"])
+        state["config"]["mode"] = {k: v for k, v in older.items() if k != "example"}
         torch.save(state, state_file)
-        ckpt.write_manifest(state_file.parent)  # an older checkpoint, re-manifested as the refusal says
+        ckpt.write_manifest(state_file.parent)  # re-manifested as the refusal says
         again = compose_cfg("train", TINY + ["total_episodes=2", f"resume={run}", *extra])
         if mode == "A":
             with pytest.raises(ckpt.CheckpointError, match="mode.example") as err:
@@ -418,7 +440,7 @@ def _stage1(compose_cfg, tmp_path, demos, monkeypatch, drives, extra):
     import memrl.dqn.stage1 as stage1
 
     monkeypatch.setattr(stage1, "drive_check", drives)
-    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.drive_episodes=4", *extra])
+    cfg = compose_cfg("train", tiny("B") + ["mode.stage1.drive_episodes=4", *extra])
     trainer = Trainer(cfg, tmp_path, demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
     return trainer
@@ -457,7 +479,7 @@ def test_stage1_behaviour_criterion_stops_when_the_drives_reach_the_target(
 
 
 def test_stage1_behaviour_criterion_needs_drive_episodes(compose_cfg, tmp_path):
-    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage1.criterion=behaviour"])
+    cfg = compose_cfg("train", tiny("B") + ["mode.stage1.criterion=behaviour"])
     with pytest.raises(UserError, match=r"mode\.stage1\.drive_episodes"):
         train(cfg, tmp_path)
 
@@ -518,20 +540,20 @@ def test_each_stage_sets_its_own_margin_weight(compose_cfg, demos, mode, stage, 
     from memrl.dqn.losses import MarginTerm, TDTerm
     from memrl.modes import mode_of
 
-    cfg = compose_cfg("train", TINY + [f"+mode={mode}", "mode.stage1.margin=0.6"] + overrides)
+    cfg = compose_cfg("train", tiny(mode) + ["mode.stage1.margin=0.6"] + overrides)
     built = build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu"))
     assert built.terms == ((TDTerm(),) if weight == 0 else (TDTerm(), MarginTerm(weight, 0.6)))
 
 
 def test_stage2_keeps_prior_knowledge_at_its_stratified_share(compose_cfg, tmp_path, demos):
-    cfg = compose_cfg("train", TINY + ["+mode=B", "mode.stage2.demo_fraction=0.25"])
+    cfg = compose_cfg("train", tiny("B") + ["mode.stage2.demo_fraction=0.25"])
     summary = train(cfg, tmp_path, demos=demos)
     assert summary.stage == "B2"
     stage2 = [r for r in rows(tmp_path / "updates.csv") if r["stage"] == "B2"]
     # exactly round(0.25 x 8) = 2 demos in every stage-2 batch
     assert stage2 and {(r["demo_count_min"], r["demo_count_max"]) for r in stage2} == {("2", "2")}
     # the paper's B (0) has none, whatever the margin weight (nothing for it to act on)
-    paper_b = compose_cfg("train", TINY + ["+mode=B", "mode.stage2.demo_fraction=0"])
+    paper_b = compose_cfg("train", tiny("B") + ["mode.stage2.demo_fraction=0"])
     assert paper_b.mode.stage2.margin_weight == 3
     train(paper_b, tmp_path / "paper_b", demos=demos)
     stage2 = [r for r in rows(tmp_path / "paper_b" / "updates.csv") if r["stage"] == "B2"]
@@ -542,7 +564,7 @@ def test_a_finished_run_resumed_with_a_bigger_budget_ends_as_an_uninterrupted_on
                                                                                   demos):
     """``resume=<finished run> total_frames=<more>``: it trains on from its last checkpoint to
     the weights and episodes of a run given the bigger budget from the start."""
-    base = TINY + ["total_episodes=null", "env.num_envs=2", "+mode=B", "mode.stage1.criterion=max_updates"]
+    base = tiny("B") + ["total_episodes=null", "env.num_envs=2", "mode.stage1.criterion=max_updates"]
     full = train(compose_cfg("train", base + ["total_frames=96"]), tmp_path / "full", demos=demos)
     short = train(compose_cfg("train", base + ["total_frames=48"]), tmp_path / "ext", demos=demos)
     assert short.frames < full.frames

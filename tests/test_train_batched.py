@@ -12,7 +12,7 @@ from memrl.dqn.loop import Trainer
 from memrl.dqn.schedule import UpdateSchedule
 from memrl.errors import ConfigError
 from memrl.train import train
-from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows
+from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows, tiny
 
 N4 = ["env.num_envs=4"]
 
@@ -22,7 +22,7 @@ rows = csv_rows
 
 @pytest.mark.parametrize("mode", [None, "A", "B"])
 def test_every_mode_trains_on_four_envs(compose_cfg, tmp_path, demos, mode):
-    cfg = compose_cfg("train", TINY + N4 + ["total_episodes=8"] + ([f"+mode={mode}"] if mode else []))
+    cfg = compose_cfg("train", tiny(mode) + N4 + ["total_episodes=8"])
     summary = train(cfg, tmp_path, demos=demos if mode else None)
     assert summary.num_envs == 4 and summary.episodes >= 8
     episodes = rows(tmp_path / "episodes.csv")
@@ -71,9 +71,8 @@ class Killed(RuntimeError):
 @pytest.mark.parametrize(("mode", "overlap"), [(None, True), (None, False), ("A", True), ("B", True)])
 def test_killed_and_resumed_run_on_four_envs_equals_an_uninterrupted_one(
         compose_cfg, tmp_path, demos, monkeypatch, mode, overlap):
-    extra = N4 + ["total_episodes=12", "checkpoint_every=3", f"agent.overlap={overlap}"] + (
-        [f"+mode={mode}"] if mode else [])
-    cfg = compose_cfg("train", TINY + extra)
+    extra = N4 + ["total_episodes=12", "checkpoint_every=3", f"agent.overlap={overlap}"]
+    cfg = compose_cfg("train", tiny(mode) + extra)
     full = train(cfg, tmp_path / "full", demos=demos)
 
     original = Trainer._episodes_done
@@ -91,7 +90,7 @@ def test_killed_and_resumed_run_on_four_envs_equals_an_uninterrupted_one(
     monkeypatch.setattr(Trainer, "_episodes_done", original)
     state = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")
     assert 3 <= state["counters"]["episodes"] < 8 and bool(state["collector"]["engine"]["steps"].any())
-    resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
+    resumed = train(compose_cfg("train", tiny(mode) + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
 
     for key in ("frames", "episodes", "updates", "stage"):
         assert getattr(resumed, key) == getattr(full, key), key

@@ -1,4 +1,5 @@
-"""Typed schemas of the training config groups (``agent``, ``buffer``, ``mode``).
+"""Typed schemas of the training config groups ``agent`` and ``buffer`` (each mode's ``mode``
+schema is declared with the mode, :mod:`memrl.modes`).
 
 Registered with Hydra's ConfigStore so that a misspelt key fails at composition, and checked
 by :func:`check_train_config` so that an out-of-range value fails at start, naming the key.
@@ -6,14 +7,12 @@ by :func:`check_train_config` so that an out-of-range value fails at start, nami
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 from omegaconf import DictConfig
 
-from memrl.data.recipe import DemoRecipe
 from memrl.errors import UserError
-from memrl.modes import mode_of
+from memrl.modes import Stage1Config, Stage2Config, mode_of  # noqa: F401  (the mode B schemas)
 
 PRECISIONS = ("auto", "float32", "bfloat16")
 EXPLORATIONS = ("epsilon", "ez_greedy", "speed_only", "boltzmann")  # memrl/dqn/exploration.py
@@ -104,110 +103,6 @@ class BufferConfig:
     compact: bool = True
     """Store each 84x84 frame once (a frame ring; stacks rebuilt at sampling: 1.41 GB for
     1e5 transitions) instead of both full stacks per transition (5.6 GB); same samples."""
-
-
-@dataclass
-class Stage1Config:
-    """Mode B stage 1: train on prior knowledge only, until behaviour converges.
-
-    The defaults are those with which stage 1 learned the lane change from the default prior
-    knowledge (docs/results/stage1-slow-check.md; docs/training.md, "Presets"): its own Adam at
-    1e-3, DQfD's margin loss at weight 3, and every 1,000 updates 40 greedy drives that stop it
-    at 35 of them (else at 30,000 updates) and keep the best weights: 78% of non-goal test
-    episodes survived and reached the target, 3 seeds (docs/results/issue20, section 6;
-    stopping at 75% within 20,000 updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
-
-    max_updates: int = 30_000
-    """Hard cap on stage-1 updates."""
-    check_every: int = 1000
-    """Updates between convergence checks."""
-    holdout_fraction: float = 0.1
-    """Share of demo transitions kept out of the buffer to measure action agreement."""
-    agreement: float = 0.9
-    """Stop when the greedy action equals the demo action on this share of held-out demos."""
-    plateau_checks: int = 4
-    """Stop when the mean TD loss improved less than ``plateau_tol`` (relative) over this many checks."""
-    plateau_tol: float = 0.02
-    """Relative loss improvement under which the loss counts as flat."""
-    criterion: str = "behaviour"
-    """agreement | plateau | agreement_or_plateau | behaviour | max_updates. ``behaviour``:
-    stop when ``drive_target`` of the drive episodes survive and reach the target lane."""
-    drive_episodes: int = 40
-    """Greedy non-goal episodes driven at every check (0: none): the behaviour itself, in
-    scenes of their own seed domain (not the test scenes). Needed by ``behaviour``."""
-    drive_seed: int = 0
-    """Base of the drive episodes' scene seeds."""
-    drive_target: float = 0.875
-    """``behaviour``: share of drive episodes that must both survive and reach the target (35 of
-    40: the drives still rose past 30 of 40, the earlier target 0.75)."""
-    keep_best: bool = True
-    """With drive episodes: stage 2 (and ``stage1.pt``) start from the checked weights that
-    drove best (most episodes surviving and reaching; ties: the later), not the last ones.
-    Imitation from few demos swings from check to check (docs/results/stage1-slow-check.md)."""
-    margin_weight: float = 3.0
-    """Weight of DQfD's large-margin loss on the demos in stage 1 (0: eq. (1) alone, the
-    paper's literal reading; with it alone the greedy agent drifts away from the demo actions,
-    see docs/results/stage1-slow-check.md)."""
-    margin: float = 0.8
-    """Margin of that loss [Q units]."""
-    lr: float | None = 1e-3
-    """Adam learning rate of stage 1 (None: ``agent.lr``). Stage 2 starts a fresh Adam at
-    ``agent.lr`` whatever this is. At 2.5e-4 stage 1 learned the steering too slowly
-    (docs/results/stage1-slow-check.md)."""
-    init: Any = None
-    """A mode B run folder (or its ``checkpoints/stage1.pt``) whose stage-1 weights this run's
-    stage 2 starts from, training no stage 1 of its own: one pretraining shared by stage-2
-    variants (exploration, budgets, ...). Its env config must equal this run's; the run's own
-    ``checkpoints/stage1.pt`` is a copy. Null: train stage 1 here."""
-
-
-@dataclass
-class Stage2Config:
-    """Mode B stage 2: double DQN from the stage-1 weights; by default the prior knowledge
-    stays at 10% of its buffer and batches with the margin loss on it (DQfD), which kept most
-    of what stage 1 learned (without it both scores dropped after the switch).
-    ``+experiment=paper``: plain double DQN as Default."""
-
-    eps_start: float = 0.3
-    """Stage 2 starts less random than a fresh agent: the stage-1 network already drives."""
-    eps_end: float = 0.05
-    """Final epsilon."""
-    eps_decay_frames: int = 50_000
-    """Env steps of the linear decay."""
-    demo_fraction: float = 0.1
-    """Share of stage 2's buffer (and of each stratified batch) that the prior knowledge keeps
-    holding, as in mode A (0: none, the paper's B: stage 2 trains as Default)."""
-    margin_weight: float = 3.0
-    """Weight of stage 1's large-margin loss (``stage1.margin``) on the demo items of stage 2's
-    batches, DQfD's remedy for the drop after pretraining (0: eq. (1) alone, the paper's B).
-    Acts only where ``demo_fraction > 0`` (with 0 no batch holds a demo). With both (0.1,
-    3) B kept most of what stage 1 learned: at 20,000 env steps, non-goal survival / goal 77 / 73
-    against 23 / 43 without (docs/results/issue20)."""
-
-
-@dataclass
-class ModeConfig:
-    """How prior knowledge is used: default (none), A or B."""
-
-    name: str = "default"
-    """default | A | B."""
-    demos_path: Any = None
-    """Dataset folder of prior knowledge (None: the scripted driver's dataset of ``example``)."""
-    example: DemoRecipe = field(default_factory=DemoRecipe)
-    """How the prior knowledge is recorded when ``demos_path`` is null (recorded on first use,
-    cached under ``paths.data_dir``): the manoeuvre-focused recipe by default."""
-    demo_fraction: float = 0.1
-    """Mode A: share of the buffer permanently held by prior knowledge."""
-    margin_weight: float = 3.0
-    """Mode A: weight of the large-margin loss (``stage1.margin``) on the demo items of each
-    batch, as DQfD (0: eq. (1) alone, the paper's A); mode B's is ``stage2.margin_weight``.
-    At 20,000 env steps A's non-goal goal rose from 0.7 to 19.0 with it, higher on every seed
-    (docs/results/issue20)."""
-    sampling: str = "stratified"
-    """Mode A: stratified (exactly round(demo_fraction x batch) demos per batch) or
-    proportional (uniform over the union: the demo count per batch is binomial)."""
-    stage1: Stage1Config = field(default_factory=Stage1Config)
-    stage2: Stage2Config = field(default_factory=Stage2Config)
 
 
 class TrainConfigError(UserError, ValueError):

@@ -3,7 +3,8 @@ trained.
 
 Each cell is trained by calling :func:`memrl.train.train` on the train config composed with
 Hydra's compose API (the user's ``study.train_overrides``, its variant's overrides from
-``study.variants``, then the cell's mode, opponent, seed and variant name), in this process
+``study.variants``, a ``mode.<key>`` one only for the modes that have that key, then the
+cell's mode, opponent, seed and variant name), in this process
 (``study.jobs=1``) or in ``study.jobs`` spawned processes. Why not Hydra's launcher: every cell
 needs its own decision first (skip a finished run, ``resume=`` a killed one, start a new one),
 and the study goes on to evaluate and report once all cells are done; a sweep of the train app
@@ -98,9 +99,11 @@ def cells(study: DictConfig, runs_dir: Path) -> list[Cell]:
         for mode in study.modes:
             for opponent in opponents:
                 for seed in study.seeds:
-                    grid = [*by_label(str(mode)).overrides, *([f"opponent={opponent}"] if opponent else []),
+                    spec = by_label(str(mode))
+                    grid = [*spec.overrides, *([f"opponent={opponent}"] if opponent else []),
                             f"seed={int(seed)}", *([f"variant='{variant}'"] if variant else [])]
-                    overrides = [*CELL_DEFAULTS, *user, *extra, *grid]
+                    # the user's and the variant's mode keys go to the modes that have them
+                    overrides = [*CELL_DEFAULTS, *spec.own_overrides([*user, *extra]), *grid]
                     cfg = compose_config("train", overrides)
                     traffic = str(cfg.env.opponent.type)
                     run_dir = runs_dir / cell_name(str(mode), traffic, int(seed), variant)
