@@ -487,6 +487,7 @@ class BatchedBench:
     threads: int = spec(ge=1)
     device: str = MISSING
     seed: int = spec(ge=0, le=SEED_MAX)
+    path_time: float = spec(ge=0, le=10)
 
 
 @dataclass

@@ -44,6 +44,9 @@ def test_bench_batched_times_each_n_beside_the_reference_and_writes_json(compose
     assert all(r > 0 for r in [*result["constant"].values(), *result["learned"].values()])
     ref = result["reference_gym_steps_per_s"]
     assert result["constant_ratio_to_reference"]["4"] == pytest.approx(result["constant"]["4"] / ref)
+    assert set(result["path_time"]) == {"1", "4"} and all(r > 0 for r in result["path_time"].values())
+    assert result["path_time_ratio_to_constant"]["4"] == pytest.approx(
+        result["path_time"]["4"] / result["constant"]["4"])
     assert result["device"] == "cpu" and result["torch_threads"] == 1
     assert json.loads((tmp_path / "bench.json").read_text())["batched"]["constant"] == result["constant"]
 

@@ -5,8 +5,9 @@ Every env runs uniformly random actions from a seeded generator and resets finis
 episodes (the batched engine inside its step, ``step(auto_reset=True)``, which also returns the
 finished episodes' last observations; at N=256 also with a separate ``reset()`` call); the
 batched engine renders every frame (the agent's, and each learned car's own view) into its
-frame ring. Rates are env steps per second of wall time; the JSON records the device and the
-torch thread count.
+frame ring. With ``path_time > 0`` the constant-traffic rows are timed again with every car's
+path drawn (``env.bev.path_time``, ``path_length`` 0), beside them in the same run. Rates are
+env steps per second of wall time; the JSON records the device and the torch thread count.
 """
 
 from __future__ import annotations
@@ -71,19 +72,21 @@ def _reference(config: dict[str, Any], steps: int, seed: int) -> float:
 
 def run(sizes: list[int], gpu_sizes: list[int], seconds: float = 3.0, reference_steps: int = 1000,
         vehicles_count: int = 5, learned: bool = True, learned_sizes: list[int] | None = None,
-        threads: int = 1, device: str = "auto", seed: int = 0) -> dict[str, Any]:
-    """Steps/s of each layer; ratios of the batched engine to the reference gym env."""
+        threads: int = 1, device: str = "auto", seed: int = 0, path_time: float = 0.0) -> dict[str, Any]:
+    """Steps/s of each layer; ratios of the batched engine to the reference gym env (and, with
+    ``path_time``, of the engine drawing every car's path to the same engine without it)."""
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
         return _run(sizes, gpu_sizes, seconds, reference_steps, vehicles_count, learned, learned_sizes,
-                    device, seed)
+                    device, seed, path_time)
     finally:
         torch.set_num_threads(before)
 
 
 def _run(sizes: list[int], gpu_sizes: list[int], seconds: float, reference_steps: int, vehicles_count: int,
-         learned: bool, learned_sizes: list[int] | None, device: str, seed: int) -> dict[str, Any]:
+         learned: bool, learned_sizes: list[int] | None, device: str, seed: int,
+         path_time: float = 0.0) -> dict[str, Any]:
     from memrl.envs.batched import resolve_device
 
     dev = resolve_device(device)
@@ -104,6 +107,10 @@ def _run(sizes: list[int], gpu_sizes: list[int], seconds: float, reference_steps
     res["constant_ratio_to_reference"] = {n: r / ref for n, r in res["constant"].items()}
     res["reset"] = ("finished envs reset inside the step (step(auto_reset=True): their last and first "
                     "frames drawn in one call); constant_reset_after_step: reset() called after step()")
+    if path_time > 0:  # every car's path drawn (bev.path_time), the same sizes and traffic
+        paths = {**constant, "bev": {"path_length": 0.0, "path_time": path_time}}
+        res["path_time"] = {str(n): _time_batched(paths, n, seconds, dev, seed) for n in all_sizes}
+        res["path_time_ratio_to_constant"] = {n: r / res["constant"][n] for n, r in res["path_time"].items()}
     if 256 in all_sizes:  # the same loop with a separate reset call, for comparison
         rate = _time_batched(constant, 256, seconds, dev, seed, auto_reset=False)
         res["constant_reset_after_step"] = {"256": rate}
