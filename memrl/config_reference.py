@@ -207,14 +207,7 @@ def markdown() -> str:
     for command, schema in SCHEMAS.items():
         doc = " ".join(inspect.cleandoc(schema.__doc__ or "").split())
         parts.append(f"## {command}\n\n`python -m memrl.{command}`: {doc}\n")
-        parts.append("| key | type | default | range | doc |\n|---|---|---|---|---|")
-        for key, type_, default, rng, text in command_rows(command):
-            text = text or seen_docs.get(key, "")
-            if text:
-                seen_docs.setdefault(key, text)
-            parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} "
-                         f"| {_cell(text)} |")
-        parts.append("")
+        parts += _table(command_rows(command), seen_docs)
         if command == "train":
             parts += _mode_sections(seen_docs)
     return "\n".join(parts)
@@ -231,15 +224,21 @@ def _mode_sections(seen_docs: dict[str, str]) -> list[str]:
             continue
         select = " ".join(spec.overrides)
         parts.append(f"### train {select}\n\nThe `mode` node of mode {spec.name} "
-                     f"(`{spec.schema.__name__ if spec.schema else 'name only'}`, memrl/modes.py): "
+                     f"(`{spec.schema.__name__}`, memrl/modes.py): "
                      f"its keys and no other; a preset's values of them are in "
                      f"`conf/mode_preset/{spec.name}_<preset>.yaml`.\n")
-        parts.append("| key | type | default | range | doc |\n|---|---|---|---|---|")
-        for key, type_, default, rng, text in command_rows("train", tuple(spec.overrides)):
-            if not key.startswith("mode."):
-                continue
-            text = text or seen_docs.get(key, "")
-            parts.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} "
-                         f"| {_cell(text)} |")
-        parts.append("")
+        rows = [r for r in command_rows("train", tuple(spec.overrides)) if r[0].startswith("mode.")]
+        parts += _table(rows, seen_docs)
     return parts
+
+
+def _table(rows: list[tuple[str, ...]], seen_docs: dict[str, str]) -> list[str]:
+    """A markdown table of ``rows``; a key without a doc of its own takes the doc that an earlier
+    table gave it (``seen_docs``, updated)."""
+    out = ["| key | type | default | range | doc |\n|---|---|---|---|---|"]
+    for key, type_, default, rng, text in rows:
+        text = text or seen_docs.get(key, "")
+        if text:
+            seen_docs.setdefault(key, text)
+        out.append(f"| `{key}` | `{_cell(type_)}` | `{_cell(default)}` | {_cell(rng)} | {_cell(text)} |")
+    return out + [""]

@@ -34,8 +34,7 @@ def register_configs() -> None:
     # Each mode's own typed `mode` node (memrl/modes.py): conf/train.yaml picks `default`,
     # conf/mode/<name>.yaml (`+mode=<name>`) overrides the choice with its own.
     for spec in MODES.values():
-        if spec.schema is not None:
-            cs.store(group="mode_schema", name=spec.name, node=spec.schema, package="mode")
+        cs.store(group="mode_schema", name=spec.name, node=spec.schema, package="mode")
 
 
 def main(argv: list[str] | None = None) -> int:

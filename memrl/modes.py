@@ -66,10 +66,10 @@ class ModeSpec:
     label: str
     """Its Table III row label."""
     stages: tuple[StageSpec, ...]
-    schema: type | None = None
+    schema: type
     """Its ``mode`` node: a dataclass whose fields are its keys (``name`` defaults to its name),
     registered as ``mode_schema/<name>`` (:func:`memrl.configs.register_configs`); ``+mode=<name>``
-    selects it (``conf/mode/<name>.yaml``). None: ``name`` alone."""
+    selects it (``conf/mode/<name>.yaml``)."""
     check: Callable[[Cfg], None] = lambda cfg: None
     """Range checks of its keys (raise :func:`memrl.errors.config_error` naming the key)."""
     overrides: tuple[str, ...] = field(default=())
@@ -78,19 +78,11 @@ class ModeSpec:
     @property
     def reads(self) -> tuple[str, ...]:
         """The top-level ``mode`` keys it has (its schema's fields): the only ones it reads."""
-        return tuple(f.name for f in fields(self.schema)) if self.schema is not None else ("name",)
+        return tuple(f.name for f in fields(self.schema))
 
     def has_key(self, dotted: str) -> bool:
         """Whether its ``mode`` node has the key ``dotted`` (``stage1.lr``; no ``mode.``)."""
-        schema: Any = self.schema
-        for part in dotted.split("."):
-            if schema is None or not is_dataclass(schema):
-                return schema is None and part == "name" and "." not in dotted
-            hints = _hints(schema)
-            if part not in hints:
-                return False
-            schema = hints[part]
-        return True
+        return _schema_at(self.schema, dotted.split(".")) is not None
 
     def own_overrides(self, overrides: list[str]) -> list[str]:
         """``overrides`` less those of a ``mode`` key that it lacks and another mode has: a
@@ -135,8 +127,7 @@ class ModeSpec:
         is recorded from it), with its defaults filled in."""
         from memrl.data.recipe import recipe_values
 
-        out = _project(self.schema, mode) if self.schema is not None else \
-            {k: v for k, v in mode.items() if k == "name"}
+        out = _project(self.schema, mode)
         if "example" in out:
             if out.get("demos_path") is None:
                 out["example"] = recipe_values(out["example"])
@@ -175,11 +166,10 @@ def register_mode(spec: ModeSpec) -> ModeSpec:
     clash = sorted(taken & {s.name for s in spec.stages})
     if clash:
         raise ValueError(f"mode {spec.name}: stage names {clash} are taken by another mode")
-    if spec.schema is not None:
-        named = {f.name: f.default for f in fields(spec.schema)}
-        if named.get("name") != spec.name:
-            raise ValueError(f"mode {spec.name}: its schema {spec.schema.__name__} needs a field "
-                             f"name: str = {spec.name!r}")
+    named = {f.name: f.default for f in fields(spec.schema)} if is_dataclass(spec.schema) else {}
+    if named.get("name") != spec.name:
+        raise ValueError(f"mode {spec.name}: its schema {getattr(spec.schema, '__name__', spec.schema)} "
+                         f"must be a dataclass with a field name: str = {spec.name!r}")
     overrides = () if spec.name == "default" else (f"+mode={spec.name}",)
     MODES[spec.name] = replace(spec, overrides=overrides)
     return MODES[spec.name]
@@ -232,6 +222,8 @@ def explain_key_error(err: BaseException) -> str | None:
 
 
 def _schema_at(schema: Any, path: list[str]) -> Any:
+    """The type at ``path`` inside a schema dataclass (a nested schema or a leaf's type); None
+    where the path leaves the schema."""
     for part in path:
         if schema is None or not is_dataclass(schema):
             return None

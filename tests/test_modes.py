@@ -14,7 +14,7 @@ from memrl.data.recipe import DemoRecipe
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.loop import Trainer
 from memrl.dqn.losses import MarginTerm, TDTerm
-from memrl.modes import MODES, ModeSpec, StageSpec, by_label, register_mode, used
+from memrl.modes import MODES, DefaultModeConfig, ModeSpec, StageSpec, by_label, register_mode, used
 from memrl.schemas import STUDY_MODES
 from memrl.train import train
 from tests.helpers import (
@@ -90,7 +90,10 @@ def test_the_paper_modes_are_declared_once():
     assert MODES["B"].next_stage("B1") is MODES["B"].stages[1]
     assert MODES["B"].stages[1].fresh_optimizer and not MODES["A"].stages[0].fresh_optimizer
     with pytest.raises(ValueError, match="taken by another mode"):
-        register_mode(ModeSpec("other", "Other", (StageSpec("B1"),)))
+        register_mode(ModeSpec("other", "Other", (StageSpec("B1"),), DefaultModeConfig))
+    with pytest.raises(ValueError, match="field name: str = 'other'"):  # schema of another mode
+        register_mode(ModeSpec("other", "Other", (StageSpec("other1"),), DefaultModeConfig))
+    assert "other" not in MODES
 
 
 def test_an_unknown_mode_is_refused_naming_the_key(compose_cfg, tmp_path):
