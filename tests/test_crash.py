@@ -114,7 +114,8 @@ def test_eval_json_and_the_report_table_count_crashes_by_kind_speed_and_cars(tmp
     from memrl.evaluation.stats import StatsConfig
     from tests.eval_helpers import records
 
-    recs = records([True, False, False, False, True, False], [True] * 6, lane="non_goal")
+    recs = records([True, False, False, False, True, False], [True, False, True, True, True, True],
+                   lane="non_goal")
     kinds = [("ahead", 2.0, 1), ("ahead", 4.0, 1), ("side", -0.5, 3), ("road_edge", 0.3, 0)]
     recs = _crashed(recs, kinds)
     protocol = ProtocolConfig(episodes=6, initial_lanes=("non_goal",))
@@ -122,15 +123,16 @@ def test_eval_json_and_the_report_table_count_crashes_by_kind_speed_and_cars(tmp
     assert result.records() == recs  # the CSV keeps kind and speed (None without a crash)
     doc = json.loads((tmp_path / "e" / "eval.json").read_text())["crashes"]["non_goal"]
     assert (doc["episodes"], doc["crashes"]) == (6, 4)
-    assert doc["by_kind"]["ahead"] == {"count": 2, "mean_closing": 3.0, "median_closing": 3.0,
-                                       "by_cars": {"1": 2}}
-    assert doc["by_kind"]["behind"] == {"count": 0, "mean_closing": None, "median_closing": None,
-                                        "by_cars": {}}
+    assert doc["by_kind"]["ahead"] == {"count": 2, "before_target": 1, "mean_closing": 3.0,
+                                       "median_closing": 3.0, "by_cars": {"1": 2}}
+    assert doc["by_kind"]["behind"] == {"count": 0, "before_target": 0, "mean_closing": None,
+                                        "median_closing": None, "by_cars": {}}
     assert doc["by_kind"]["side"]["by_cars"] == {"3": 1} and doc["by_kind"]["road_edge"]["count"] == 1
     lines = crash_section([[read_result(tmp_path / "e")]], StatsConfig())
-    assert "| row | kind | crashes | closing mean / median | 0 cars | 1 car | 3 cars |" in lines
-    assert "| Default (6) | ahead | 2 | 3.00 / 3.00 | 0 | 2 | 0 |" in lines
-    assert "| Default (6) | road_edge | 1 | 0.30 / 0.30 | 1 | 0 | 0 |" in lines
+    assert ("| row | kind | crashes | before target lane | closing mean / median | 0 cars | 1 car "
+            "| 3 cars |") in lines
+    assert "| Default (6) | ahead | 2 | 1 | 3.00 / 3.00 | 0 | 2 | 0 |" in lines
+    assert "| Default (6) | road_edge | 1 | 0 | 0.30 / 0.30 | 1 | 0 | 0 |" in lines
     assert not any("| behind |" in line for line in lines)
 
 

@@ -13,8 +13,10 @@ from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord
 
 
 def summary(records: Iterable[EpisodeRecord]) -> dict[str, Any]:
-    """Crashes of ``records``: ``episodes``, ``crashes``, and per kind ``count``, ``mean_closing``,
-    ``median_closing`` [m/s] (None without crashes) and ``by_cars`` (other cars -> crashes)."""
+    """Crashes of ``records``: ``episodes``, ``crashes``, and per kind ``count``,
+    ``before_target`` (of them, crashes before the target lane was reached: while waiting for a
+    gap or changing lanes), ``mean_closing``, ``median_closing`` [m/s] (None without crashes) and
+    ``by_cars`` (other cars -> crashes)."""
     recs = list(records)
     crashed = [r for r in recs if r.collided and r.crash_kind]
     kinds: dict[str, Any] = {}
@@ -24,7 +26,7 @@ def summary(records: Iterable[EpisodeRecord]) -> dict[str, Any]:
         cars: dict[int, int] = {}
         for r in mine:
             cars[r.vehicles] = cars.get(r.vehicles, 0) + 1
-        kinds[kind] = {"count": len(mine),
+        kinds[kind] = {"count": len(mine), "before_target": sum(not r.reached_target for r in mine),
                        "mean_closing": round(float(np.mean(speeds)), 4) if speeds else None,
                        "median_closing": round(float(np.median(speeds)), 4) if speeds else None,
                        "by_cars": {str(k): cars[k] for k in sorted(cars)}}

@@ -26,10 +26,10 @@ def _row_lines(label: str, s: dict[str, Any], cars: list[int]) -> list[str]:
             continue
         speed = f"{k['mean_closing']:.2f} / {k['median_closing']:.2f}" if k["mean_closing"] is not None \
             else "\u2014"
-        lines.append(f"| {label} | {kind} | {k['count']} | {speed} | "
+        lines.append(f"| {label} | {kind} | {k['count']} | {k['before_target']} | {speed} | "
                      + " | ".join(str(k["by_cars"].get(str(c), 0)) for c in cars) + " |")
     if not lines:
-        lines.append(f"| {label} | none | 0 | \u2014 | " + " | ".join("0" for _ in cars) + " |")
+        lines.append(f"| {label} | none | 0 | 0 | \u2014 | " + " | ".join("0" for _ in cars) + " |")
     return lines
 
 
@@ -50,11 +50,13 @@ def crash_section(groups: Sequence[Sequence[EvalResult]], cfg: stats.StatsConfig
     lines = ["## Crashes by kind", "",
              "Collisions classified from the state at the crash (`memrl.envs.crash`): `ahead` (ran "
              "into the car ahead), `behind` (hit from behind), `side` (side contact), `road_edge`; "
+             "of them before the target lane was reached (waiting for a gap or changing lanes); "
              "closing speed [m/s] mean / median (toward the other car along the road; for the edge, "
              "the lateral speed), crashes by the number of other cars; pooled over the row's units "
              "and both initial-lane settings (episodes in brackets).", "",
-             "| row | kind | crashes | closing mean / median | " + " | ".join(heads) + " |",
-             "|---|---|---|---|" + "---|" * len(cars)]
+             "| row | kind | crashes | before target lane | closing mean / median | "
+             + " | ".join(heads) + " |",
+             "|---|---|---|---|---|" + "---|" * len(cars)]
     for label, s in rows:
         lines += _row_lines(f"{label} ({s['episodes']})", s, cars)
     return lines + [""]
