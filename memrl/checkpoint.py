@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -9,13 +10,15 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from memrl.data.demos import env_config_hash
+from memrl.data.demos import env_config_hash, hashed_env_config
 from memrl.dqn.checkpoint import CheckpointError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.errors import load_run_config
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
 from memrl.modules.qnet import TABLE1, arch_of, build_qnet, input_frames
+
+log = logging.getLogger(__name__)
 
 
 def resolve(path: str | Path) -> Path:
@@ -110,9 +113,10 @@ def stage1_file(path: str | Path) -> Path:
 
 def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) -> Path:
     """The stage-1 weights that ``mode.stage1.init`` names, checked: present, trained in the
-    same env config as ``env_cfg`` (the pixels mean the same) when the run folder's
-    ``config.yaml`` is there to tell, and, with ``network`` (a ``network`` config node), of
-    that architecture."""
+    same env config as ``env_cfg`` (the pixels and the dynamics mean the same) when the run
+    folder's ``config.yaml`` is there to tell, and, with ``network`` (a ``network`` config
+    node), of that architecture. The reward weights (``env.reward``) may differ, logged: stage 2
+    fits its Q-values to its own run's reward, as it does to its own ``agent.gamma``."""
     file = stage1_file(path)
     check_stage1(file)
     if network is not None:
@@ -130,8 +134,13 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
         loaded = load_run_config(run_cfg)
         theirs = loaded.get("env") if isinstance(loaded, DictConfig) else None
         if theirs is not None and env_config_hash(theirs) != env_config_hash(env_cfg):
-            raise CheckpointError(f"{file}: trained in another env config than this run's "
-                                  f"(see {run_cfg}, key env)")
+            theirs_, ours_ = hashed_env_config(theirs), hashed_env_config(env_cfg)
+            if {k: v for k, v in theirs_.items() if k != "reward"} != \
+                    {k: v for k, v in ours_.items() if k != "reward"}:
+                raise CheckpointError(f"{file}: trained in another env config than this run's "
+                                      f"(see {run_cfg}, key env)")
+            log.info("%s: trained under the reward %s; stage 2 trains under this run's %s",
+                     file, theirs_.get("reward"), ours_.get("reward"))
     return file
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 import torch
@@ -80,7 +81,8 @@ def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, 
     assert all(0 <= v <= 1 for part in s1.parts for v in part.values())
 
 
-def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg, tmp_path, demos):
+def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg, tmp_path, demos,
+                                                                    caplog):
     """mode.stage1.init: stage 2 starts from the named run's stage-1 weights (online and
     target), with a fresh Adam, and runs the same stage-2 schedule as that run did."""
     b = tiny("B") + ["mode.stage1.criterion=max_updates"]
@@ -109,6 +111,13 @@ def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg
     rounds = UpdateSchedule(4, 20, 1).rounds_due  # TINY's train_every and warmup_frames
     assert source.updates == src_updates + rounds(source.frames)
     assert summary.updates == rounds(summary.frames)  # stage-2 updates only
+    # another reward is allowed (stage 2 fits its Q-values to its own run's reward), logged
+    from memrl.checkpoint import stage1_source
+
+    other = compose_cfg("train", b + ["env.reward.collision=-50"])
+    with caplog.at_level(logging.INFO, logger="memrl.checkpoint"):
+        assert stage1_source(tmp_path / "src", other.env) == tmp_path / "src" / "checkpoints" / "stage1.pt"
+    assert "'collision': -5" in caplog.text and "'collision': -50" in caplog.text
     # refused at start, one line each, no run folder left
     for overrides, match in (
             ([f"mode.stage1.init={tmp_path / 'nothing'}"], "no stage-1 network"),
