@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from memrl.data.demos import env_config_hash, hashed_env_config
+from memrl.data.demos import hashed_env_config
 from memrl.dqn.checkpoint import CheckpointError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.vehicles import N_ACTIONS
@@ -133,14 +133,15 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     if run_cfg.is_file():
         loaded = load_run_config(run_cfg)
         theirs = loaded.get("env") if isinstance(loaded, DictConfig) else None
-        if theirs is not None and env_config_hash(theirs) != env_config_hash(env_cfg):
-            theirs_, ours_ = hashed_env_config(theirs), hashed_env_config(env_cfg)
-            if {k: v for k, v in theirs_.items() if k != "reward"} != \
-                    {k: v for k, v in ours_.items() if k != "reward"}:
+        if theirs is not None:
+            their_env, our_env = hashed_env_config(theirs), hashed_env_config(env_cfg)
+            their_reward, our_reward = their_env.pop("reward", None), our_env.pop("reward", None)
+            if their_env != our_env:
                 raise CheckpointError(f"{file}: trained in another env config than this run's "
                                       f"(see {run_cfg}, key env)")
-            log.info("%s: trained under the reward %s; stage 2 trains under this run's %s",
-                     file, theirs_.get("reward"), ours_.get("reward"))
+            if their_reward != our_reward:
+                log.info("%s: trained under the reward %s; stage 2 trains under this run's %s",
+                         file, their_reward, our_reward)
     return file
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 
 import pytest
 import torch
@@ -117,7 +118,8 @@ def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg
     other = compose_cfg("train", b + ["env.reward.collision=-50"])
     with caplog.at_level(logging.INFO, logger="memrl.checkpoint"):
         assert stage1_source(tmp_path / "src", other.env) == tmp_path / "src" / "checkpoints" / "stage1.pt"
-    assert "'collision': -5" in caplog.text and "'collision': -50" in caplog.text
+    assert re.search(r"trained under the reward \{'collision': -5, .*; stage 2 trains under this run's "
+                     r"\{'collision': -50, ", caplog.text)
     # refused at start, one line each, no run folder left
     for overrides, match in (
             ([f"mode.stage1.init={tmp_path / 'nothing'}"], "no stage-1 network"),
