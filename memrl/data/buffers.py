@@ -32,6 +32,7 @@ from torchrl.data import ReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.offline_to_online import OfflineToOnlineReplayBuffer
 from torchrl.data.replay_buffers.storages import Storage
 
+from memrl.data.crash_sampler import CrashShareSampler
 from memrl.data.frame_store import count_frames
 from memrl.data.nstep import nstep_storage
 
@@ -55,10 +56,14 @@ def agent_storage(capacity: int, compact: bool = True, streams: int = 1,
 
 
 def agent_buffer(capacity: int, batch_size: int, compact: bool = True, streams: int = 1,
-                 device: torch.device | str = "cpu", **nstep: Any) -> TensorDictReplayBuffer:
-    """FIFO replay of the agent's own transitions, uniform sampling (see :func:`agent_storage`)."""
+                 device: torch.device | str = "cpu", crash_share: float = 0.0,
+                 **nstep: Any) -> TensorDictReplayBuffer:
+    """FIFO replay of the agent's own transitions (see :func:`agent_storage`), uniform sampling,
+    or with ``crash_share`` of each batch drawn from its crash transitions
+    (:class:`~memrl.data.crash_sampler.CrashShareSampler`)."""
     return TensorDictReplayBuffer(
-        storage=agent_storage(capacity, compact, streams, device, **nstep), batch_size=batch_size)
+        storage=agent_storage(capacity, compact, streams, device, **nstep), batch_size=batch_size,
+        sampler=CrashShareSampler(crash_share) if crash_share > 0 else None)
 
 
 def demo_buffer(demos: TensorDictBase, batch_size: int | None = None,
@@ -94,12 +99,15 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
         streams: envs writing the agent part together (one ``extend`` of ``streams`` rows per
             env step).
         device: where both parts store and sample.
+        crash_share: share of the agent part of each batch drawn from its crash transitions
+            (:class:`~memrl.data.crash_sampler.CrashShareSampler`; 0: uniform).
         **nstep: ``n_step``, ``gamma``, ``stride`` of both parts (:data:`NStep`).
     """
 
     def __init__(self, demos: TensorDictBase, capacity: int, demo_fraction: float,
                  batch_size: int, sampling: str = "stratified", compact: bool = True,
-                 streams: int = 1, device: torch.device | str = "cpu", **nstep: Any) -> None:
+                 streams: int = 1, device: torch.device | str = "cpu", crash_share: float = 0.0,
+                 **nstep: Any) -> None:
         if sampling not in ("stratified", "proportional"):
             raise ValueError(f"sampling must be stratified or proportional, got {sampling!r}")
         n_demo = int(round(demo_fraction * capacity))
@@ -110,6 +118,9 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
                          online_storage=agent_storage(capacity - n_demo, compact, streams, device,
                                                       **nstep),
                          offline_fraction=demo_fraction, batch_size=batch_size)
+        if crash_share > 0:  # TorchRL builds the online part with a uniform sampler, no argument for another
+            self._online_buffer = ReplayBuffer(storage=self._online_buffer.storage,
+                                               sampler=CrashShareSampler(crash_share))
         self.sampling = sampling
         self.capacity = capacity
         self.last_demo_count = 0

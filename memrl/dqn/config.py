@@ -103,6 +103,9 @@ class BufferConfig:
     compact: bool = True
     """Store each 84x84 frame once (a frame ring; stacks rebuilt at sampling: 1.41 GB for
     1e5 transitions) instead of both full stacks per transition (5.6 GB); same samples."""
+    crash_share: float = 0.0
+    """Share of the agent part of every batch drawn from the stored transitions that end in a
+    crash, the rest uniform (memrl/data/crash_sampler.py); 0: uniform, as the paper."""
 
 
 class TrainConfigError(UserError, ValueError):
@@ -120,6 +123,8 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
     _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
     _need(a.n_step >= 1, "agent.n_step", f"must be >= 1, got {a.n_step}")
+    _need(0 <= cfg.buffer.crash_share < 1, "buffer.crash_share",
+          f"must be in [0, 1), got {cfg.buffer.crash_share}")
     _need(str(a.precision) in PRECISIONS, "agent.precision",
           f"must be one of {sorted(PRECISIONS)}")
     _need(a.threads >= 0, "agent.threads", f"must be >= 0, got {a.threads}")
