@@ -59,6 +59,11 @@ def test_bench_memory_measures_both_storages_in_fresh_processes(compose_cfg, tmp
     assert streams["compact"]["env_steps"] == streams["naive"]["env_steps"] == 3000 // 16
     assert streams["ratio_compact_to_naive_bytes"] < 0.5
     assert streams["compact"]["step_us"] > 0 and streams["naive"]["step_us"] > 0
+    # the same compact storage sampled with a crash share, timed beside it
+    assert streams["crash"]["env_steps"] == streams["compact"]["env_steps"]
+    assert streams["crash"]["ring_frames"] == streams["compact"]["ring_frames"]
+    assert streams["ratio_crash_to_compact_sample_time"] == round(
+        streams["crash"]["sample_us_per_step"] / streams["compact"]["sample_us_per_step"], 3)
 
 
 def test_bench_e2e_reports_the_busy_share_after_warmup(compose_cfg, tmp_path):

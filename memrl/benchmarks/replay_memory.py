@@ -17,7 +17,9 @@ writes: S envs stepped together (:func:`stream_batches`, episodes of 1-300 steps
 ``extend`` of S rows per env step followed by one ``sample(32)``, until N transitions are
 stored; reported: the RSS added, and the write and sample time per env step (mean over the
 steps, and the median, which leaves out one-time costs such as the compact ring's first touch;
-data generation not timed), for the compact storage with ``streams=S`` and the plain one.
+data generation not timed), for the compact storage with ``streams=S`` and the plain one, and
+for the compact storage sampled with ``buffer.crash_share`` = 0.1 (``crash``: the cost of finding
+the crash rows at every sample; the synthetic episodes end in a crash half the time).
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ from collections.abc import Iterator
 from typing import Any
 
 NAIVE_BYTES_PER_TRANSITION = 2 * 4 * 84 * 84  # two uint8 stacks of 4 frames
+CRASH_SHARE = 0.1
+"""``buffer.crash_share`` of the ``crash`` variant (the compact storage otherwise)."""
 
 
 def _status_kb(field: str) -> int:
@@ -133,15 +137,16 @@ def measure_streams(variant: str, transitions: int, streams: int, seed: int = 0,
     from memrl.data.buffers import agent_buffer
 
     torch.set_num_threads(1)
-    compact = {"compact": True, "naive": False}[variant]
-    warm = agent_buffer(64 * streams, 8, compact=compact, streams=streams)
+    compact = {"compact": True, "crash": True, "naive": False}[variant]
+    share = CRASH_SHARE if variant == "crash" else 0.0
+    warm = agent_buffer(64 * streams, 8, compact=compact, streams=streams, crash_share=share)
     for td in stream_batches(streams, 16 * streams, seed + 1):
         warm.extend(td)
         warm.sample()
     del warm, td
     gc.collect()
     before = _status_kb("VmRSS")
-    rb = agent_buffer(transitions, batch_size, compact=compact, streams=streams)
+    rb = agent_buffer(transitions, batch_size, compact=compact, streams=streams, crash_share=share)
     writes, samples = [], []
     for td in stream_batches(streams, transitions, seed):
         t0 = time.perf_counter()
@@ -192,6 +197,9 @@ def run_streams(transitions: int, streams: int, naive: bool, seed: int,
     res: dict[str, Any] = {"streams": streams}
     res["compact"] = _subprocess("compact", transitions, seed, timeout_s, streams)
     res["compact_added_gb"] = round(res["compact"]["added_bytes"] / 1e9, 3)
+    res["crash"] = _subprocess("crash", transitions, seed, timeout_s, streams)
+    res["ratio_crash_to_compact_sample_time"] = round(
+        res["crash"]["sample_us_per_step"] / res["compact"]["sample_us_per_step"], 3)
     if naive:
         count = _naive_count(transitions, streams)
         res["naive"] = _subprocess("naive", count, seed, timeout_s, streams)
@@ -229,7 +237,7 @@ def run(transitions: int = 100_000, naive: bool = True, seed: int = 0,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--variant", choices=["compact", "naive"], required=True)
+    parser.add_argument("--variant", choices=["compact", "crash", "naive"], required=True)
     parser.add_argument("--transitions", type=int, default=100_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--streams", type=int, default=1)
