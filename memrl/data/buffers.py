@@ -35,6 +35,7 @@ from torchrl.data.replay_buffers.storages import Storage
 from memrl.data.crash_sampler import CrashShareSampler
 from memrl.data.frame_store import count_frames
 from memrl.data.nstep import nstep_storage
+from memrl.data.priority_sampler import INDEX_KEY, WEIGHT_KEY, PrioritySampler
 
 NStep = dict[str, Any]
 """``n_step`` (steps summed at most, 1: 1-step), ``gamma`` and ``stride`` (frames between the
@@ -55,15 +56,35 @@ def agent_storage(capacity: int, compact: bool = True, streams: int = 1,
     return nstep_storage(capacity, compact=compact, streams=streams, device=device, **nstep)
 
 
+def agent_sampler(capacity: int, crash_share: float = 0.0, priority: float = 0.0,
+                  priority_beta: float = 0.5) -> Any:
+    """The agent part's sampler: prioritized (``priority`` = alpha > 0,
+    :class:`~memrl.data.priority_sampler.PrioritySampler`), a crash share
+    (:class:`~memrl.data.crash_sampler.CrashShareSampler`), or None: TorchRL's uniform one."""
+    if priority > 0 and crash_share > 0:
+        raise ValueError("buffer.priority and buffer.crash_share exclude each other")
+    if priority > 0:
+        return PrioritySampler(capacity, priority, priority_beta)
+    return CrashShareSampler(crash_share) if crash_share > 0 else None
+
+
 def agent_buffer(capacity: int, batch_size: int, compact: bool = True, streams: int = 1,
                  device: torch.device | str = "cpu", crash_share: float = 0.0,
+                 priority: float = 0.0, priority_beta: float = 0.5,
                  **nstep: Any) -> TensorDictReplayBuffer:
-    """FIFO replay of the agent's own transitions (see :func:`agent_storage`), uniform sampling,
-    or with ``crash_share`` of each batch drawn from its crash transitions
-    (:class:`~memrl.data.crash_sampler.CrashShareSampler`)."""
+    """FIFO replay of the agent's own transitions (see :func:`agent_storage`), sampled as
+    :func:`agent_sampler` says (uniform by default). Batches carry each item's row
+    (``index``) and, when prioritized, its importance weight (``priority_weight``)."""
     return TensorDictReplayBuffer(
         storage=agent_storage(capacity, compact, streams, device, **nstep), batch_size=batch_size,
-        sampler=CrashShareSampler(crash_share) if crash_share > 0 else None)
+        sampler=agent_sampler(capacity, crash_share, priority, priority_beta))
+
+
+def priority_sampler(buffer: Any) -> PrioritySampler | None:
+    """The prioritized sampler of a buffer's agent part, None when it samples otherwise."""
+    rb = buffer.online_buffer if isinstance(buffer, PriorKnowledgeBuffer) else buffer
+    sampler = getattr(rb, "_sampler", None)
+    return sampler if isinstance(sampler, PrioritySampler) else None
 
 
 def demo_buffer(demos: TensorDictBase, batch_size: int | None = None,
@@ -101,13 +122,15 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
         device: where both parts store and sample.
         crash_share: share of the agent part of each batch drawn from its crash transitions
             (:class:`~memrl.data.crash_sampler.CrashShareSampler`; 0: uniform).
+        priority, priority_beta: prioritized sampling of the agent part (alpha > 0; see
+            :func:`agent_sampler`); demo items keep the stratified share.
         **nstep: ``n_step``, ``gamma``, ``stride`` of both parts (:data:`NStep`).
     """
 
     def __init__(self, demos: TensorDictBase, capacity: int, demo_fraction: float,
                  batch_size: int, sampling: str = "stratified", compact: bool = True,
                  streams: int = 1, device: torch.device | str = "cpu", crash_share: float = 0.0,
-                 **nstep: Any) -> None:
+                 priority: float = 0.0, priority_beta: float = 0.5, **nstep: Any) -> None:
         if sampling not in ("stratified", "proportional"):
             raise ValueError(f"sampling must be stratified or proportional, got {sampling!r}")
         n_demo = int(round(demo_fraction * capacity))
@@ -118,9 +141,10 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
                          online_storage=agent_storage(capacity - n_demo, compact, streams, device,
                                                       **nstep),
                          offline_fraction=demo_fraction, batch_size=batch_size)
-        if crash_share > 0:  # TorchRL builds the online part with a uniform sampler, no argument for another
-            self._online_buffer = ReplayBuffer(storage=self._online_buffer.storage,
-                                               sampler=CrashShareSampler(crash_share))
+        sampler = agent_sampler(capacity - n_demo, crash_share, priority, priority_beta)
+        if sampler is not None:  # TorchRL builds the online part with a uniform sampler, no argument
+            self._online_buffer = ReplayBuffer(storage=self._online_buffer.storage, sampler=sampler)
+        self.prioritized = isinstance(sampler, PrioritySampler)
         self.sampling = sampling
         self.capacity = capacity
         self.last_demo_count = 0
@@ -128,16 +152,34 @@ class PriorKnowledgeBuffer(OfflineToOnlineReplayBuffer):
     def sample(self, batch_size: int | None = None) -> TensorDictBase:
         """A batch; ``last_demo_count`` tells how many of its items are demos."""
         batch_size = batch_size or self._batch_size
-        if self.sampling == "proportional" and len(self.online_buffer) > 0:
+        out: TensorDictBase
+        if self.prioritized and len(self.online_buffer) > 0:
+            out = self._sample_prioritized(batch_size)
+        elif self.sampling == "proportional" and len(self.online_buffer) > 0:
             share = len(self.offline_buffer) / len(self)
             n_demo = int(torch.binomial(torch.tensor(float(batch_size)), torch.tensor(share)))
             parts = [b.sample(n) for b, n in ((self.offline_buffer, n_demo),
                                               (self.online_buffer, batch_size - n_demo)) if n > 0]
-            out: TensorDictBase = torch.cat(parts) if len(parts) > 1 else parts[0]  # type: ignore[assignment]
+            out = torch.cat(parts) if len(parts) > 1 else parts[0]  # type: ignore[assignment]
         else:
             out = super().sample(batch_size)
         self.last_demo_count = int(out["is_demo"].sum())
         return out
+
+    def _sample_prioritized(self, batch_size: int) -> TensorDictBase:
+        """Stratified demos (first) and prioritized agent items, with each item's agent row
+        (``index``: -1 for demos) and importance weight; the demos weigh the agent items'
+        mean, so their share of the TD loss stays their share of the batch."""
+        n_demo = int(round(self.offline_fraction * batch_size))
+        agent, info = self.online_buffer.sample(batch_size - n_demo, return_info=True)
+        weight, index = info[WEIGHT_KEY], torch.as_tensor(info[INDEX_KEY]).reshape(-1)
+        if n_demo > 0:
+            agent = torch.cat([self.offline_buffer.sample(n_demo), agent])  # type: ignore[assignment]
+            weight = torch.cat([weight.mean().expand(n_demo), weight])
+            index = torch.cat([torch.full((n_demo,), -1, dtype=index.dtype), index])
+        agent.set(WEIGHT_KEY, weight.to(agent.device))
+        agent.set(INDEX_KEY, index.to(agent.device))
+        return agent
 
     def dumps(self, path: str | Path) -> None:
         """Save the agent part (TorchRL buffer checkpointing); the demo part is immutable and is

@@ -64,7 +64,9 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
     capacity, batch = int(cfg.buffer.capacity), int(a.batch_size)
     compact = bool(cfg.buffer.compact)  # each frame stored once
     store: dict[str, Any] = {"compact": compact, "streams": num_envs, "device": device,
-                             "crash_share": float(cfg.buffer.crash_share)}
+                             "crash_share": float(cfg.buffer.crash_share),
+                             "priority": float(cfg.buffer.priority),
+                             "priority_beta": float(cfg.buffer.priority_beta)}
     nstep = {"n_step": int(a.n_step), "gamma": float(a.gamma)}  # memrl.data.nstep
     if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
         nstep["stride"] = int(cfg.env.frame_stride)

@@ -27,7 +27,7 @@ periodic evaluation ``eval`` leaves the training's RNG and weights as they are).
 
 LEGACY_VALUES: dict[str, Any] = {
     "variant": None,
-    "buffer": {"crash_share": 0.0},
+    "buffer": {"crash_share": 0.0, "priority": 0.0, "priority_beta": 0.5},
     "network": {"_target_": "memrl.modules.qnet.QNetwork", "channels": 16, "hidden": 256,
                 "layernorm": False, "layernorm_convs": False},  # conf/network/table1.yaml
     "agent": {"precision": "float32", "overlap": False, "exploration": "epsilon", "ez_mu": 2.0,

@@ -106,6 +106,13 @@ class BufferConfig:
     crash_share: float = 0.0
     """Share of the agent part of every batch drawn from the stored transitions that end in a
     crash, the rest uniform (memrl/data/crash_sampler.py); 0: uniform, as the paper."""
+    priority: float = 0.0
+    """Prioritized replay of the agent part (Schaul et al., 2016; memrl/data/priority_sampler.py):
+    the priority exponent alpha, items drawn in proportion to ``(|TD error| + 1e-3) ** alpha``;
+    0: uniform, as the paper. Excludes ``crash_share``. Dopamine's Rainbow uses 0.5."""
+    priority_beta: float = 0.5
+    """Importance-sampling exponent of prioritized replay (0: no correction, 1: full); fixed
+    over the run, as Dopamine's Rainbow (0.5)."""
 
 
 class TrainConfigError(UserError, ValueError):
@@ -125,6 +132,11 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(a.n_step >= 1, "agent.n_step", f"must be >= 1, got {a.n_step}")
     _need(0 <= cfg.buffer.crash_share < 1, "buffer.crash_share",
           f"must be in [0, 1), got {cfg.buffer.crash_share}")
+    _need(0 <= cfg.buffer.priority <= 1, "buffer.priority", f"must be in [0, 1], got {cfg.buffer.priority}")
+    _need(0 <= cfg.buffer.priority_beta <= 1, "buffer.priority_beta",
+          f"must be in [0, 1], got {cfg.buffer.priority_beta}")
+    _need(cfg.buffer.priority == 0 or cfg.buffer.crash_share == 0, "buffer.priority",
+          "prioritized replay and buffer.crash_share exclude each other; set one of them to 0")
     _need(str(a.precision) in PRECISIONS, "agent.precision",
           f"must be one of {sorted(PRECISIONS)}")
     _need(a.threads >= 0, "agent.threads", f"must be >= 0, got {a.threads}")

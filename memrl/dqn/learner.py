@@ -11,6 +11,7 @@ from tensordict import TensorDictBase
 from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate
 
+from memrl.data.priority_sampler import TD_KEY
 from memrl.dqn.augment import shift_batch
 from memrl.dqn.config import AgentConfig
 from memrl.dqn.losses import LossTerm, TDTerm
@@ -109,6 +110,7 @@ class Learner:
     def loss(self, batch: TensorDictBase) -> torch.Tensor:
         """The stage's loss on a batch (differentiable): the sum of its terms, in their order,
         on the batch shifted by ``augment_shift`` pixels (when > 0)."""
+        given = batch
         if self.augment_shift > 0:
             batch = shift_batch(batch, self.augment_shift, self.shift_generator)
         pixels, seen = batch["pixels"], {}
@@ -133,6 +135,8 @@ class Learner:
                 handle.remove()
         if total is None:
             raise ValueError(f"no loss term applies to this batch (terms: {[t.name for t in self.terms]})")
+        if batch is not given and TD_KEY in batch.keys():  # the TD errors, for prioritized replay
+            given.set(TD_KEY, batch.get(TD_KEY))
         return total
 
     def start_stage(self, terms: tuple[LossTerm, ...], lr: float | None = None,

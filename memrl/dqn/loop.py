@@ -30,6 +30,8 @@ from tqdm import tqdm
 
 from memrl import signals
 from memrl.checkpoint import save_qnet, stage1_source
+from memrl.data.buffers import priority_sampler
+from memrl.data.priority_sampler import reprioritize
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.builder import Stage, build_stage
 from memrl.dqn.collector import Collector, EpisodeEnd, Steps
@@ -142,6 +144,7 @@ class Trainer:
                 batches = self._due_batches()  # sampled now, before the new steps join
                 losses, steps = self.rounds.run(batches, self._collect)  # overlapped or in turn
                 self._book(batches, losses)
+                self._reprioritize(batches)  # prioritized replay: the new TD errors
                 for part in steps.transitions:
                     self.stage.buffer.extend(part)
                 self._episodes_done(steps.episodes)
@@ -155,6 +158,7 @@ class Trainer:
                     signals.stop()
             batches = self._due_batches()  # the rounds the last steps made due
             self._book(batches, self.rounds.flush(batches))
+            self._reprioritize(batches)
         finally:
             self.rounds.close()
             bar.close()
@@ -285,6 +289,14 @@ class Trainer:
         log.info("stage 1 done (%s); stage 2 from %s", self.stage1.stop_reason, path)
 
     # ------------------------------------------------------------------ bookkeeping
+    def _reprioritize(self, batches: list[TensorDictBase]) -> None:
+        """With ``buffer.priority``: the TD errors of the updated batches become their rows'
+        priorities (:mod:`memrl.data.priority_sampler`), before the next round samples."""
+        sampler = priority_sampler(self.stage.buffer)
+        if sampler is not None:
+            for batch in batches:
+                reprioritize(sampler, batch)
+
     def _book(self, batches: list[TensorDictBase], losses: list[float]) -> None:
         """Counters, accumulators and the periodic updates.csv rows of finished updates."""
         for batch, loss in zip(batches, losses, strict=True):
