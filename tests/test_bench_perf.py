@@ -64,6 +64,11 @@ def test_bench_memory_measures_both_storages_in_fresh_processes(compose_cfg, tmp
     assert streams["crash"]["ring_frames"] == streams["compact"]["ring_frames"]
     assert streams["ratio_crash_to_compact_sample_time"] == round(
         streams["crash"]["sample_us_per_step"] / streams["compact"]["sample_us_per_step"], 3)
+    # and with prioritized replay (its priority writes timed with its samples)
+    assert streams["priority"]["env_steps"] == streams["compact"]["env_steps"]
+    assert streams["priority"]["ring_frames"] == streams["compact"]["ring_frames"]
+    assert streams["ratio_priority_to_compact_sample_time"] == round(
+        streams["priority"]["sample_us_per_step"] / streams["compact"]["sample_us_per_step"], 3)
 
 
 def test_bench_e2e_reports_the_busy_share_after_warmup(compose_cfg, tmp_path):

@@ -19,7 +19,10 @@ stored; reported: the RSS added, and the write and sample time per env step (mea
 steps, and the median, which leaves out one-time costs such as the compact ring's first touch;
 data generation not timed), for the compact storage with ``streams=S`` and the plain one, and
 for the compact storage sampled with ``buffer.crash_share`` = 0.1 (``crash``: the cost of finding
-the crash rows at every sample; the synthetic episodes end in a crash half the time).
+the crash rows at every sample; the synthetic episodes end in a crash half the time), and for
+the compact storage with prioritized replay, ``buffer.priority`` = 0.5 (``priority``: its
+sample time includes writing the batch's new priorities back, as the trainer does after each
+update, from random TD errors).
 """
 
 from __future__ import annotations
@@ -36,6 +39,10 @@ from typing import Any
 NAIVE_BYTES_PER_TRANSITION = 2 * 4 * 84 * 84  # two uint8 stacks of 4 frames
 CRASH_SHARE = 0.1
 """``buffer.crash_share`` of the ``crash`` variant (the compact storage otherwise)."""
+PRIORITY = 0.5
+"""``buffer.priority`` (alpha) of the ``priority`` variant (the compact storage otherwise)."""
+VARIANTS = {"compact": True, "crash": True, "priority": True, "naive": False}
+"""Each variant and whether it stores compactly."""
 
 
 def _status_kb(field: str) -> int:
@@ -137,22 +144,29 @@ def measure_streams(variant: str, transitions: int, streams: int, seed: int = 0,
     from memrl.data.buffers import agent_buffer
 
     torch.set_num_threads(1)
-    compact = {"compact": True, "crash": True, "naive": False}[variant]
-    share = CRASH_SHARE if variant == "crash" else 0.0
-    warm = agent_buffer(64 * streams, 8, compact=compact, streams=streams, crash_share=share)
+    from memrl.data.buffers import priority_sampler
+
+    compact = VARIANTS[variant]
+    kind = {"crash_share": CRASH_SHARE if variant == "crash" else 0.0,
+            "priority": PRIORITY if variant == "priority" else 0.0}
+    warm = agent_buffer(64 * streams, 8, compact=compact, streams=streams, **kind)
     for td in stream_batches(streams, 16 * streams, seed + 1):
         warm.extend(td)
         warm.sample()
     del warm, td
     gc.collect()
     before = _status_kb("VmRSS")
-    rb = agent_buffer(transitions, batch_size, compact=compact, streams=streams, crash_share=share)
+    rb = agent_buffer(transitions, batch_size, compact=compact, streams=streams, **kind)
+    sampler = priority_sampler(rb)
     writes, samples = [], []
     for td in stream_batches(streams, transitions, seed):
+        delta = torch.rand(batch_size)  # drawn before the clock: the TD errors an update would give
         t0 = time.perf_counter()
         rb.extend(td)
         t1 = time.perf_counter()
         batch = rb.sample()
+        if sampler is not None:
+            sampler.update_priority(batch["index"], delta)
         samples.append(time.perf_counter() - t1)
         writes.append(t1 - t0)
     steps, write_s, sample_s = len(writes), sum(writes), sum(samples)
@@ -200,6 +214,9 @@ def run_streams(transitions: int, streams: int, naive: bool, seed: int,
     res["crash"] = _subprocess("crash", transitions, seed, timeout_s, streams)
     res["ratio_crash_to_compact_sample_time"] = round(
         res["crash"]["sample_us_per_step"] / res["compact"]["sample_us_per_step"], 3)
+    res["priority"] = _subprocess("priority", transitions, seed, timeout_s, streams)
+    res["ratio_priority_to_compact_sample_time"] = round(
+        res["priority"]["sample_us_per_step"] / res["compact"]["sample_us_per_step"], 3)
     if naive:
         count = _naive_count(transitions, streams)
         res["naive"] = _subprocess("naive", count, seed, timeout_s, streams)
@@ -237,7 +254,7 @@ def run(transitions: int = 100_000, naive: bool = True, seed: int = 0,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--variant", choices=["compact", "crash", "naive"], required=True)
+    parser.add_argument("--variant", choices=list(VARIANTS), required=True)
     parser.add_argument("--transitions", type=int, default=100_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--streams", type=int, default=1)
