@@ -133,3 +133,39 @@ def train_killed_after(monkeypatch, cfg, run_dir: Path, demos, episodes: int) ->
     with pytest.raises(Killed):
         train(cfg, run_dir, demos=demos)
     monkeypatch.setattr(Trainer, "_episodes_done", original)
+
+
+def assert_kill_and_resume_is_exact(compose_cfg, tmp_path: Path, demos, monkeypatch, extra: list[str]):
+    """Train ``TINY + extra`` (12 episodes, a checkpoint every 3) uninterrupted into ``full``,
+    and killed after 8 episodes then resumed into ``cut``: same counters, episode rows, final
+    weights and agent buffers. Returns the config and the uninterrupted run's summary."""
+    from memrl.dqn import checkpoint as ckpt
+    from memrl.train import train
+
+    cfg = compose_cfg("train", TINY + extra)
+    full = train(cfg, tmp_path / "full", demos=demos)
+    train_killed_after(monkeypatch, cfg, tmp_path / "cut", demos, episodes=8)
+    state = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")
+    assert 3 <= state["counters"]["episodes"] < 8
+    resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
+    for key in ("frames", "episodes", "updates"):
+        assert getattr(resumed, key) == getattr(full, key), key
+    assert csv_rows(tmp_path / "cut" / "episodes.csv") == csv_rows(tmp_path / "full" / "episodes.csv")
+    assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
+    return cfg, full
+
+
+EVERY_STAGE = [(None, "default", []), ("A", "A", []), ("B", "B1", []), ("B", "B2", []),
+               ("B", "B2", ["mode.stage2.demo_fraction=0"])]
+"""(mode, stage, overrides) of every stage, B's stage 2 with and without its demo share."""
+
+
+def built_stage_buffer(compose_cfg, demos, mode, stage: str, overrides: list[str]):
+    """The buffer that stage ``stage`` of ``TINY + mode + overrides`` is built with."""
+    import torch
+
+    from memrl.dqn.builder import build_stage
+    from memrl.modes import mode_of
+
+    cfg = compose_cfg("train", TINY + tiny_mode(mode) + overrides)
+    return build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu")).buffer

@@ -8,10 +8,14 @@ import torch
 
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer
 from memrl.data.crash_sampler import CrashShareSampler, crash_rows
-from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.config import TrainConfigError, check_train_config
-from memrl.train import train
-from tests.helpers import TINY, assert_same_final_weights_and_agent_buffers, csv_rows, tiny_mode, train_killed_after
+from tests.helpers import (
+    EVERY_STAGE,
+    assert_kill_and_resume_is_exact,
+    built_stage_buffer,
+    csv_rows,
+    tiny_mode,
+)
 from tests.test_buffers import fake
 
 CRASHES = [7, 42, 93]
@@ -92,30 +96,13 @@ def test_run_with_a_crash_share_killed_and_resumed_equals_an_uninterrupted_one(
         compose_cfg, tmp_path, demos, monkeypatch, mode):
     extra = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3", "buffer.crash_share=0.25",
              *tiny_mode(mode)]
-    cfg = compose_cfg("train", TINY + extra)
-    full = train(cfg, tmp_path / "full", demos=demos)
+    assert_kill_and_resume_is_exact(compose_cfg, tmp_path, demos, monkeypatch, extra)
     assert any(row["collided"] == "1" for row in csv_rows(tmp_path / "full" / "episodes.csv"))
-    train_killed_after(monkeypatch, cfg, tmp_path / "cut", demos, episodes=8)
-    state = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")
-    assert 3 <= state["counters"]["episodes"] < 8
-    resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
-    for key in ("frames", "episodes", "updates"):
-        assert getattr(resumed, key) == getattr(full, key), key
-    assert csv_rows(tmp_path / "cut" / "episodes.csv") == csv_rows(tmp_path / "full" / "episodes.csv")
-    assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
 
 
-@pytest.mark.parametrize("mode, stage, overrides", [
-    (None, "default", []), ("A", "A", []), ("B", "B1", []), ("B", "B2", []),
-    ("B", "B2", ["mode.stage2.demo_fraction=0"]),
-])
+@pytest.mark.parametrize("mode, stage, overrides", EVERY_STAGE)
 def test_every_agent_stage_samples_through_the_crash_sampler(compose_cfg, demos, mode, stage, overrides):
-    from memrl.dqn.builder import build_stage
-    from memrl.modes import mode_of
-
-    cfg = compose_cfg("train", TINY + tiny_mode(mode) + ["buffer.crash_share=0.25", *overrides])
-    built = build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu"))
-    rb = built.buffer
+    rb = built_stage_buffer(compose_cfg, demos, mode, stage, ["buffer.crash_share=0.25", *overrides])
     agent_part = getattr(rb, "online_buffer", rb)
     if stage == "B1":  # prior knowledge alone: nothing crashes there, nothing to oversample
         assert not isinstance(agent_part.sampler, CrashShareSampler)

@@ -8,16 +8,9 @@ import torch
 
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, priority_sampler
 from memrl.data.priority_sampler import PrioritySampler, reprioritize
-from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.config import TrainConfigError, check_train_config
-from memrl.train import train
-from tests.helpers import (
-    TINY,
-    assert_same_final_weights_and_agent_buffers,
-    csv_rows,
-    tiny_mode,
-    train_killed_after,
-)
+from memrl.dqn.loop import Trainer
+from tests.helpers import EVERY_STAGE, TINY, assert_kill_and_resume_is_exact, built_stage_buffer, tiny_mode
 from tests.test_buffers import fake
 
 
@@ -115,17 +108,10 @@ def test_bad_values_are_refused(compose_cfg):
         check_train_config(compose_cfg("train", ["buffer.priority=0.5", "buffer.crash_share=0.1"]))
 
 
-@pytest.mark.parametrize("mode, stage, overrides", [
-    (None, "default", []), ("A", "A", []), ("B", "B1", []), ("B", "B2", []),
-    ("B", "B2", ["mode.stage2.demo_fraction=0"]),
-])
+@pytest.mark.parametrize("mode, stage, overrides", EVERY_STAGE)
 def test_every_agent_stage_samples_through_the_priority_sampler(compose_cfg, demos, mode, stage, overrides):
-    from memrl.dqn.builder import build_stage
-    from memrl.modes import mode_of
-
-    cfg = compose_cfg("train", TINY + tiny_mode(mode) + ["buffer.priority=0.5", *overrides])
-    built = build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu"))
-    sampler = priority_sampler(built.buffer)
+    rb = built_stage_buffer(compose_cfg, demos, mode, stage, ["buffer.priority=0.5", *overrides])
+    sampler = priority_sampler(rb)
     if stage == "B1":  # prior knowledge alone: sampled uniformly
         assert sampler is None
     else:
@@ -137,19 +123,8 @@ def test_prioritized_run_killed_and_resumed_equals_an_uninterrupted_one(
         compose_cfg, tmp_path, demos, monkeypatch, mode):
     extra = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3", "buffer.priority=0.5",
              *tiny_mode(mode)]
-    cfg = compose_cfg("train", TINY + extra)
-    full = train(cfg, tmp_path / "full", demos=demos)
-    train_killed_after(monkeypatch, cfg, tmp_path / "cut", demos, episodes=8)
-    state = ckpt.load_state(tmp_path / "cut" / "checkpoints" / "last")
-    assert 3 <= state["counters"]["episodes"] < 8
-    resumed = train(compose_cfg("train", TINY + extra + [f"resume={tmp_path / 'cut'}"]), demos=demos)
-    for key in ("frames", "episodes", "updates"):
-        assert getattr(resumed, key) == getattr(full, key), key
+    cfg, full = assert_kill_and_resume_is_exact(compose_cfg, tmp_path, demos, monkeypatch, extra)
     assert full.updates > 0
-    assert csv_rows(tmp_path / "cut" / "episodes.csv") == csv_rows(tmp_path / "full" / "episodes.csv")
-    assert_same_final_weights_and_agent_buffers(cfg, demos, tmp_path / "full", tmp_path / "cut")
-    from memrl.dqn.loop import Trainer
-
     priorities = []
     for i, run in enumerate((tmp_path / "full", tmp_path / "cut")):
         trainer = Trainer(cfg, tmp_path / f"prio_{i}", demos)
