@@ -95,8 +95,8 @@ def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int], batch: i
     The episodes run on the batched engine, all at once on ``device`` (None: the network's
     device; ``batch``: envs in lockstep on the gym path, used only when the engine cannot draw
     the env's frames)."""
-    protocol = ProtocolConfig(episodes=len(seeds), initial_lanes=["non_goal"],
-                              duration=int(env_cfg.get("duration", LaneChangeConfig.duration)))  # the run's length
+    duration = int(env_cfg.get("duration", LaneChangeConfig.duration))  # the run's length
+    protocol = ProtocolConfig(episodes=len(seeds), initial_lanes=["non_goal"], duration=duration)
     job = Job(protocol_env(env_cfg, protocol, "non_goal"), "non_goal", list(enumerate(seeds)))
     device = device if device is not None else module_device(qnet)
     records = run_jobs(GreedyActor(qnet), [job], batch=batch, device=device).records  # type: ignore[arg-type]

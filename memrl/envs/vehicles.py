@@ -30,7 +30,8 @@ IDLE = ACTIONS.index((0, 0))
 """The action that keeps speed and curvature (index 4)."""
 _ENV = LaneChangeConfig()
 ACTION_LIMITS: dict[str, Any] = {"speed_step": _ENV.speed_step, "curvature_step": _ENV.curvature_step,
-                                 "speed_limits": tuple(_ENV.speed_limits), "curvature_limit": _ENV.curvature_limit}
+                                 "speed_limits": tuple(_ENV.speed_limits),
+                                 "curvature_limit": _ENV.curvature_limit}
 """A car's action steps and limits when none are given: the env config's defaults."""
 
 

@@ -31,7 +31,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     cfg = yaml.safe_load((args.run / "config.yaml").read_text())
-    streams, gamma, n_step = int(cfg["env"]["num_envs"]), float(cfg["agent"]["gamma"]), int(cfg["agent"]["n_step"])
+    streams, gamma = int(cfg["env"]["num_envs"]), float(cfg["agent"]["gamma"])
+    n_step = int(cfg["agent"]["n_step"])
     capacity = int(cfg["buffer"]["capacity"])
     mode = cfg.get("mode") or {}
     share = {"A": lambda: mode["demo_fraction"], "B": lambda: mode["stage2"]["demo_fraction"]}.get(
@@ -54,7 +55,8 @@ def main() -> None:
         target = td["next", "reward"][idx].reshape(-1)
         rows.append({"env steps": f"{lo}-{hi}",
                      "crash windows": len(idx), "share %": round(100 * len(idx) / (hi - lo), 2),
-                     "Q(s,a)": round(q_sa.mean().item(), 2), "max_a Q": round(q.max(1).values.mean().item(), 2),
+                     "Q(s,a)": round(q_sa.mean().item(), 2),
+                     "max_a Q": round(q.max(1).values.mean().item(), 2),
                      "target": round(target.mean().item(), 2)})
     g = torch.Generator().manual_seed(0)
     others = (~crash).nonzero().squeeze(-1)

@@ -102,7 +102,8 @@ def table(episodes: list[tuple[np.ndarray, list[float], list[int], bool]], gamma
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("evaluation", type=Path, help="an evaluation folder or its eval.json")
-    parser.add_argument("--weights", default="final", help="final (the run's) or stage1 (B's stage-1 weights)")
+    parser.add_argument("--weights", default="final",
+                        help="final (the run's) or stage1 (B's stage-1 weights)")
     parser.add_argument("--episodes", type=int, default=100, help="non-goal episodes replayed")
     args = parser.parse_args()
     file = args.evaluation if args.evaluation.suffix == ".json" else args.evaluation / EVAL_JSON
