@@ -106,6 +106,9 @@ def test_bad_values_are_refused(compose_cfg):
         check_train_config(compose_cfg("train", ["buffer.priority=1.5"]))
     with pytest.raises(TrainConfigError, match="'buffer.priority': prioritized replay and"):
         check_train_config(compose_cfg("train", ["buffer.priority=0.5", "buffer.crash_share=0.1"]))
+    with pytest.raises(TrainConfigError, match="config 'mode.sampling': prioritized replay keeps"):
+        check_train_config(compose_cfg("train", ["+mode=A", "mode.sampling=proportional",
+                                                 "buffer.priority=0.5"]))
 
 
 @pytest.mark.parametrize("mode, stage, overrides", EVERY_STAGE)
