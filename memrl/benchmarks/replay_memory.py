@@ -141,31 +141,32 @@ def measure_streams(variant: str, transitions: int, streams: int, seed: int = 0,
     """In this process: RSS added and time per env step of ``streams`` envs written together."""
     import torch
 
-    from memrl.data.buffers import agent_buffer
+    from memrl.data.buffers import agent_buffer, priority_sampler
 
     torch.set_num_threads(1)
-    from memrl.data.buffers import priority_sampler
-
     compact = VARIANTS[variant]
-    kind = {"crash_share": CRASH_SHARE if variant == "crash" else 0.0,
-            "priority": PRIORITY if variant == "priority" else 0.0}
-    warm = agent_buffer(64 * streams, 8, compact=compact, streams=streams, **kind)
+    share = CRASH_SHARE if variant == "crash" else 0.0
+    alpha = PRIORITY if variant == "priority" else 0.0
+    warm = agent_buffer(64 * streams, 8, compact=compact, streams=streams, crash_share=share, priority=alpha)
     for td in stream_batches(streams, 16 * streams, seed + 1):
         warm.extend(td)
         warm.sample()
     del warm, td
     gc.collect()
     before = _status_kb("VmRSS")
-    rb = agent_buffer(transitions, batch_size, compact=compact, streams=streams, **kind)
+    rb = agent_buffer(transitions, batch_size, compact=compact, streams=streams, crash_share=share,
+                      priority=alpha)
     sampler = priority_sampler(rb)
     writes, samples = [], []
     for td in stream_batches(streams, transitions, seed):
-        delta = torch.rand(batch_size)  # drawn before the clock: the TD errors an update would give
+        # the TD errors an update would give, drawn before the clock (and only here: the other
+        # variants draw their samples from torch's generator as before)
+        delta = torch.rand(batch_size) if sampler is not None else None
         t0 = time.perf_counter()
         rb.extend(td)
         t1 = time.perf_counter()
         batch = rb.sample()
-        if sampler is not None:
+        if sampler is not None and delta is not None:
             sampler.update_priority(batch["index"], delta)
         samples.append(time.perf_counter() - t1)
         writes.append(t1 - t0)

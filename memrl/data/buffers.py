@@ -83,8 +83,7 @@ def agent_buffer(capacity: int, batch_size: int, compact: bool = True, streams: 
 def priority_sampler(buffer: Any) -> PrioritySampler | None:
     """The prioritized sampler of a buffer's agent part, None when it samples otherwise."""
     rb = buffer.online_buffer if isinstance(buffer, PriorKnowledgeBuffer) else buffer
-    sampler = getattr(rb, "_sampler", None)
-    return sampler if isinstance(sampler, PrioritySampler) else None
+    return rb.sampler if isinstance(rb.sampler, PrioritySampler) else None
 
 
 def demo_buffer(demos: TensorDictBase, batch_size: int | None = None,

@@ -79,11 +79,6 @@ class PrioritySampler(Sampler):
         self._max = max(self._max, float(p.max())) if len(p) else self._max
 
     # ------------------------------------------------------------------ read side
-    def probabilities(self, n: int) -> torch.Tensor:
-        """``P(i)`` of the first ``n`` stored rows (float64)."""
-        p = self._priority[:n]
-        return p / p.sum()
-
     def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict[str, Any]]:
         n = len(storage)
         if n == 0:
