@@ -137,7 +137,7 @@ def check_train_config(cfg: DictConfig) -> None:
           f"must be in [0, 1], got {cfg.buffer.priority_beta}")
     _need(cfg.buffer.priority == 0 or cfg.buffer.crash_share == 0, "buffer.priority",
           "prioritized replay and buffer.crash_share exclude each other; set one of them to 0")
-    _need(cfg.buffer.priority == 0 or cfg.mode.get("sampling", "stratified") == "stratified", "mode.sampling",
+    _need(cfg.buffer.priority == 0 or cfg.mode.get("sampling") in (None, "stratified"), "mode.sampling",
           "prioritized replay keeps the demos' stratified share; 'proportional' would be ignored")
     _need(str(a.precision) in PRECISIONS, "agent.precision",
           f"must be one of {sorted(PRECISIONS)}")
