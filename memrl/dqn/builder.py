@@ -70,7 +70,7 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
     nstep = {"n_step": int(a.n_step), "gamma": float(a.gamma)}  # memrl.data.nstep
     if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
         nstep["stride"] = int(cfg.env.frame_stride)
-    terms = (TDTerm(), *spec.terms(cfg))
+    terms = (TDTerm(advantage=float(a.advantage_learning)), *spec.terms(cfg))
     lr = spec.lr(cfg)
     lr = None if lr is None else float(lr)
     share = float(spec.demo_share(cfg))

@@ -32,7 +32,7 @@ LEGACY_VALUES: dict[str, Any] = {
                 "layernorm": False, "layernorm_convs": False},  # conf/network/table1.yaml
     "agent": {"precision": "float32", "overlap": False, "exploration": "epsilon", "ez_mu": 2.0,
               "ez_max_duration": 50, "temperature_start": 1.0, "temperature_end": 0.05,
-              "n_step": 1, "augment_shift": 0},
+              "n_step": 1, "augment_shift": 0, "advantage_learning": 0.0},
     "env": {"bev": {"path_length": 0.0, "path_time": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
             "initial_curvature": 0.0, "frame_stack": 1, "num_envs": 1,
             "frame_stride": 1},

@@ -29,6 +29,11 @@ class AgentConfig:
     its reward is ``sum_{i<m} gamma^i r_{t+i}`` over up to ``n_step`` steps of its episode, the
     bootstrap ``gamma^m max Q(s_{t+m})``; a crash within the window ends the sum without a
     bootstrap. 1: the 1-step target of the paper. Applies to agent data and demos alike."""
+    advantage_learning: float = 0.0
+    """Advantage learning's alpha in [0, 1) (Bellemare et al., 2016; :class:`memrl.dqn.losses.TDTerm`):
+    every TD target less alpha (max_b Q_target(s, b) - Q_target(s, a)), which multiplies the
+    gap between the best action and the others by 1 / (1 - alpha) (their paper: 0.9). 0: eq. (1).
+    Every stage; costs one forward of the target network per update."""
     lr: float = 2.5e-4
     """Adam learning rate."""
     batch_size: int = 32
@@ -130,6 +135,8 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
     _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
     _need(a.n_step >= 1, "agent.n_step", f"must be >= 1, got {a.n_step}")
+    _need(0 <= a.advantage_learning < 1, "agent.advantage_learning",
+          f"must be in [0, 1), got {a.advantage_learning}")
     _need(0 <= cfg.buffer.crash_share < 1, "buffer.crash_share",
           f"must be in [0, 1), got {cfg.buffer.crash_share}")
     _need(0 <= cfg.buffer.priority <= 1, "buffer.priority", f"must be in [0, 1], got {cfg.buffer.priority}")

@@ -12,8 +12,10 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
+
+from memrl.data.priority_sampler import TD_KEY
 
 
 class LossTerm(Protocol):
@@ -33,14 +35,44 @@ class LossTerm(Protocol):
 class TDTerm:
     """Eq. (1): the mean of 1/2 (r + gamma^m Q_target(s', argmax_a Q(s', a)) - Q(s, a))^2, no
     bootstrap on terminated transitions (TorchRL's double ``DQNLoss``; its ``l2`` distance has
-    no 1/2; ``m`` is the batch's ``steps_to_next_obs`` where n-step returns give one, else 1)."""
+    no 1/2; ``m`` is the batch's ``steps_to_next_obs`` where n-step returns give one, else 1).
+
+    With ``advantage`` = alpha > 0 the target is advantage learning's (Bellemare et al., 2016):
+    less alpha (max_b Q_target(s, b) - Q_target(s, a)), which leaves the greedy action's value
+    as it is and multiplies the action gap by 1 / (1 - alpha)."""
 
     weight: float = 1.0
+    advantage: float = 0.0
+    """Advantage learning's alpha in [0, 1) (``agent.advantage_learning``); 0: eq. (1)."""
     name: str = "td"
 
     def __call__(self, batch: TensorDictBase, loss_module: nn.Module, qnet: nn.Module,
                  q_online: torch.Tensor | None = None) -> torch.Tensor:
-        return self.weight * 0.5 * loss_module(batch)["loss"]
+        if self.advantage == 0:
+            return self.weight * 0.5 * loss_module(batch)["loss"]
+        # DQNLoss has no advantage-learning target: its reward is lowered by the correction
+        # instead (the target is reward + bootstrap), on a copy that leaves the batch as it is.
+        lowered = batch.clone(False)
+        lowered.set("next", batch.get("next").clone(False))
+        reward = batch.get(("next", "reward"))
+        gap = self.advantage * target_action_gap(batch, loss_module)
+        lowered.set(("next", "reward"), reward - gap.reshape(reward.shape).to(reward.dtype))
+        loss = loss_module(lowered)["loss"]
+        if TD_KEY in lowered.keys():  # the TD errors, for prioritized replay
+            batch.set(TD_KEY, lowered.get(TD_KEY))
+        return self.weight * 0.5 * loss
+
+
+@torch.no_grad()
+def target_action_gap(batch: TensorDictBase, loss_module: nn.Module) -> torch.Tensor:
+    """``max_b Q_target(s, b) - Q_target(s, a)`` per item ``[B]`` (>= 0; 0 for the greedy action),
+    the target network's Q of the batch's own ``pixels`` and ``action``."""
+    actor = loss_module.value_network
+    with loss_module.target_value_network_params.to_module(actor, preserve_module_state=False):
+        q = actor(TensorDict({"pixels": batch.get("pixels")}, batch.batch_size))["action_value"]
+    a = batch.get("action").reshape(-1, 1).long()
+    q = q.reshape(a.shape[0], -1)
+    return q.max(-1).values - q.gather(-1, a).squeeze(-1)
 
 
 @dataclass(frozen=True)
