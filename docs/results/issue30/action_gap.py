@@ -12,7 +12,9 @@ part (the states the final policy visits) and gives, as 10th / 50th / 90th perce
 - the share of greedy actions that slow down, keep the speed, speed up;
 
 and, on 2,000 other stored transitions, the mean |Q(s, a) - (r + gamma^m max_a' Q(s', a'))|
-(as ``buffer_crash_fit.py``). When the gaps are below that error, the argmax among them is
+(as ``buffer_crash_fit.py``); for a run trained with advantage learning
+(``agent.advantage_learning`` = alpha > 0), also the error against its own target, that less
+alpha (max_b Q(s, b) - Q(s, a)). When the gaps are below that error, the argmax among them is
 decided by the fit's error, not by what the actions do. Reads ``checkpoints/last/buffer`` and
 ``checkpoints/final.pt`` (or ``--weights``). Written by hand: a diagnostic of finished runs.
 """
@@ -69,13 +71,19 @@ def main() -> None:
     q_sa = policy.q_values(o["pixels"]).gather(1, o["action"].unsqueeze(1)).squeeze(1)
     boot = o["next", "reward"].reshape(-1) + gamma * policy.q_values(o["next", "pixels"]).max(1).values * \
         (~o["next", "done"].reshape(-1))
+    alpha = float(cfg["agent"].get("advantage_learning", 0.0))  # runs before it: eq. (1)
+    extra = {}
+    if alpha > 0:
+        q_s = policy.q_values(o["pixels"])
+        al_target = boot - alpha * (q_s.max(1).values - q_sa)
+        extra = {f"mean |AL TD error| (alpha {alpha:g})": round(float((q_sa - al_target).abs().mean()), 2)}
     print(json.dumps({
         "run": str(args.run), "weights": str(weights), "states": len(q), "mean Q": round(float(q.mean()), 2),
         "best - second p10/50/90": percentiles(top2[:, 0] - top2[:, 1]),
         "speed gap p10/50/90": percentiles(q[i, :, curv].max(1).values - q[i, :, curv].min(1).values),
         "curvature gap p10/50/90": percentiles(q[i, speed, :].max(1).values - q[i, speed, :].min(1).values),
         "greedy slower / keep / faster": [round(float((speed == k).float().mean()), 3) for k in range(3)],
-        "mean |TD error| (2,000 stored transitions)": round(float((q_sa - boot).abs().mean()), 2)}))
+        "mean |TD error| (2,000 stored transitions)": round(float((q_sa - boot).abs().mean()), 2), **extra}))
 
 
 if __name__ == "__main__":
