@@ -41,6 +41,7 @@ OPTIONS = ("threads", "channels_last", "compile", "pool_first", "precision")
 """The learner speed options of ``agent`` (``conf/agent/dqn.yaml``)."""
 LEARNING_OPTIONS: dict[str, dict[str, Any]] = {
     "augment_shift_4": {"agent": {"augment_shift": 4}},
+    "advantage_learning": {"agent": {"advantage_learning": 0.9}},
     "dueling": {"network": {"_target_": "memrl.modules.qnet.DuelingQNetwork"}},
     "layernorm": {"network": {"layernorm": True}},
     "layernorm_convs": {"network": {"layernorm": True, "layernorm_convs": True}},
@@ -133,9 +134,12 @@ def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any
 
     torch.manual_seed(seed)
     learner = Learner(agent, network={**TABLE1, **(network or {})})
+    td = TDTerm(advantage=float(agent.advantage_learning))  # as memrl.dqn.builder builds it
     if stage1:
         s1 = Stage1Config()  # the margin term of mode B's stage 1 at its defaults
-        learner.start_stage((TDTerm(), MarginTerm(s1.margin_weight, s1.margin)))
+        learner.start_stage((td, MarginTerm(s1.margin_weight, s1.margin)))
+    elif td != TDTerm():
+        learner.start_stage((td,))
     batch_size = int(agent.batch_size)
 
     def step() -> float:
