@@ -88,6 +88,21 @@ def stop_requested() -> int | None:
     return _state["pending"]
 
 
+def interruption(err: BaseException) -> Interrupted | None:
+    """The :class:`Interrupted` that ``err`` was raised while handling, if any. Library clean-up
+    code that fails while the signal's exception passes through it replaces that exception with
+    its own (tensordict's ``to_module`` context raises ``RuntimeError: Converting a tensordict
+    to boolean value``), which would read as a failed run instead of a stop."""
+    seen: set[int] = set()
+    link: BaseException | None = err
+    while link is not None and id(link) not in seen:
+        if isinstance(link, Interrupted):
+            return link
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
+    return None
+
+
 def stop() -> None:
     """Raise :class:`Interrupted` for the pending signal (after the caller's checkpoint)."""
     signum = _state["pending"]

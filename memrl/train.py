@@ -130,7 +130,12 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
                 raise
             record_provenance(run_dir, "start" if fresh else "resume")
             with signals.deferred():  # a signal stops at the loop's next checkpoint
-                summary = trainer.run()
+                try:
+                    summary = trainer.run()
+                except Exception as err:  # a second signal, raised at once, masked on its way up
+                    if (stop := signals.interruption(err)) is not None:
+                        raise signals.Interrupted(stop.signum) from err
+                    raise
     log.info("done: %d episodes, %d frames, %d updates in %.0f s; summary in %s",
              summary.episodes, summary.frames, summary.updates, summary.wall_s,
              run_dir / "summary.json")

@@ -164,3 +164,44 @@ def test_a_deferred_stop_waits_for_the_check_and_a_second_signal_stops_at_once()
         assert signals.stop_requested() is None
     finally:
         signals.uninstall()
+
+
+def test_a_signal_masked_by_library_clean_up_still_stops_training_as_a_signal(
+        compose_cfg, tmp_path, demos, monkeypatch):
+    # A second signal raises at once, wherever the loop is; inside DQNLoss, tensordict's
+    # to_module context turns it into a RuntimeError on its way out (tensordict 0.11). train()
+    # must still end as a stop (the study then stops instead of starting its next run).
+    from memrl import signals
+    from memrl.modules.qnet import QNetwork
+    from memrl.train import train
+    from tests.helpers import TINY
+
+    forward, calls = QNetwork.forward, {"n": 0}
+
+    def interrupted_forward(self, x):
+        if torch.is_grad_enabled():  # the online forward inside DQNLoss (acting runs without)
+            calls["n"] += 1
+            if calls["n"] == 10:
+                raise signals.Interrupted(signal.SIGTERM)
+        return forward(self, x)
+
+    monkeypatch.setattr(QNetwork, "forward", interrupted_forward)
+    with pytest.raises(signals.Interrupted) as info:
+        train(compose_cfg("train", TINY + ["total_episodes=6"]), tmp_path / "run", demos=demos)
+    assert info.value.signum == signal.SIGTERM and calls["n"] == 10
+
+
+def test_interruption_finds_the_signal_behind_other_errors():
+    from memrl import signals
+
+    stop = signals.Interrupted(signal.SIGINT)
+    try:
+        try:
+            raise stop
+        except signals.Interrupted:
+            raise RuntimeError("clean-up failed") from None  # __context__ is kept
+    except RuntimeError as err:
+        masked = err
+    assert signals.interruption(masked) is stop
+    assert signals.interruption(RuntimeError("no signal")) is None
+    assert signals.interruption(ValueError("x")) is None
