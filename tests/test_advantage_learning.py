@@ -85,6 +85,11 @@ def test_an_update_with_advantage_learning_moves_the_weights_through_the_learner
     assert any(not torch.equal(b, p) for b, p in zip(before, learner.qnet.parameters(), strict=True))
 
 
+def test_a_learner_without_terms_takes_alpha_from_its_config():
+    assert Learner(AgentConfig(advantage_learning=0.9)).terms == (TDTerm(advantage=0.9),)
+    assert Learner(AgentConfig()).terms == (TDTerm(),)
+
+
 @pytest.mark.parametrize("mode, stage, overrides", EVERY_STAGE)
 def test_every_stage_is_built_with_the_configured_alpha(compose_cfg, demos, mode, stage, overrides):
     from memrl.dqn.builder import build_stage

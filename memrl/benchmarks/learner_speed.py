@@ -129,17 +129,13 @@ def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any
     the architecture; ``stage1``: every sampled row a demo, with the margin term)."""
     from memrl.dqn.config import Stage1Config
     from memrl.dqn.learner import Learner
-    from memrl.dqn.losses import MarginTerm, TDTerm
+    from memrl.dqn.losses import MarginTerm, td_term
     from memrl.modules.qnet import TABLE1
 
     torch.manual_seed(seed)
-    learner = Learner(agent, network={**TABLE1, **(network or {})})
-    td = TDTerm(advantage=float(agent.advantage_learning))  # as memrl.dqn.builder builds it
-    if stage1:
-        s1 = Stage1Config()  # the margin term of mode B's stage 1 at its defaults
-        learner.start_stage((td, MarginTerm(s1.margin_weight, s1.margin)))
-    elif td != TDTerm():
-        learner.start_stage((td,))
+    s1 = Stage1Config()  # the margin term of mode B's stage 1 at its defaults
+    terms = (td_term(agent), MarginTerm(s1.margin_weight, s1.margin)) if stage1 else None
+    learner = Learner(agent, terms=terms, network={**TABLE1, **(network or {})})
     batch_size = int(agent.batch_size)
 
     def step() -> float:

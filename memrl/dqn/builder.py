@@ -18,7 +18,7 @@ from torchrl.modules import EGreedyModule
 
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, demo_buffer
 from memrl.dqn.exploration import make_exploration
-from memrl.dqn.losses import LossTerm, TDTerm
+from memrl.dqn.losses import LossTerm, td_term
 from memrl.dqn.stage1 import split_demos
 from memrl.modes import StageSpec
 
@@ -70,7 +70,7 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
     nstep = {"n_step": int(a.n_step), "gamma": float(a.gamma)}  # memrl.data.nstep
     if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
         nstep["stride"] = int(cfg.env.frame_stride)
-    terms = (TDTerm(advantage=float(a.advantage_learning)), *spec.terms(cfg))
+    terms = (td_term(a), *spec.terms(cfg))
     lr = spec.lr(cfg)
     lr = None if lr is None else float(lr)
     share = float(spec.demo_share(cfg))

@@ -14,7 +14,7 @@ from torchrl.objectives import DQNLoss, HardUpdate
 from memrl.data.priority_sampler import TD_KEY
 from memrl.dqn.augment import shift_batch
 from memrl.dqn.config import AgentConfig
-from memrl.dqn.losses import LossTerm, TDTerm
+from memrl.dqn.losses import LossTerm, td_term
 from memrl.modules.qnet import QNetwork, make_q_actor
 
 
@@ -70,7 +70,7 @@ class Learner:
     Args:
         cfg: the ``agent`` config.
         device: where the networks and the optimizer live.
-        terms: the loss terms of the first stage.
+        terms: the loss terms of the first stage (None: eq. (1)'s, as ``cfg`` sets it).
         seed: seed of the learner's own generator (image shifts), so that shifts do not depend
             on what the acting thread draws meanwhile.
         network: the Q-network, as a ``network`` config node or stored architecture (built
@@ -78,10 +78,10 @@ class Learner:
     """
 
     def __init__(self, cfg: AgentConfig | Any, device: torch.device | str = "cpu",
-                 terms: tuple[LossTerm, ...] = (TDTerm(),), seed: int = 0,
+                 terms: tuple[LossTerm, ...] | None = None, seed: int = 0,
                  network: Mapping[str, Any] | torch.nn.Module | None = None) -> None:
         self.cfg, self.device = cfg, torch.device(device)
-        self.terms = tuple(terms)
+        self.terms = tuple(terms) if terms is not None else (td_term(cfg),)
         self.augment_shift = int(cfg.augment_shift)
         self.shift_generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.actor: QValueActor = make_q_actor(pool_first=bool(cfg.pool_first), network=network)

@@ -9,7 +9,7 @@ that takes the batch and the learner's pieces, and one line in the stage that us
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -61,6 +61,11 @@ class TDTerm:
         if TD_KEY in lowered.keys():  # the TD errors, for prioritized replay
             batch.set(TD_KEY, lowered.get(TD_KEY))
         return self.weight * 0.5 * loss
+
+
+def td_term(agent: Any) -> TDTerm:
+    """Eq. (1)'s term as the ``agent`` config sets it (``agent.advantage_learning``)."""
+    return TDTerm(advantage=float(agent.advantage_learning))
 
 
 @torch.no_grad()

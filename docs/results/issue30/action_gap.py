@@ -68,14 +68,14 @@ def main() -> None:
     top2 = q.reshape(-1, 9).topk(2, 1).values
     other = rows[:2000]
     o = rb.storage.get(other)
-    q_sa = policy.q_values(o["pixels"]).gather(1, o["action"].unsqueeze(1)).squeeze(1)
+    q_o = policy.q_values(o["pixels"])
+    q_sa = q_o.gather(1, o["action"].unsqueeze(1)).squeeze(1)
     boot = o["next", "reward"].reshape(-1) + gamma * policy.q_values(o["next", "pixels"]).max(1).values * \
         (~o["next", "done"].reshape(-1))
     alpha = float(cfg["agent"].get("advantage_learning", 0.0))  # runs before it: eq. (1)
     extra = {}
     if alpha > 0:
-        q_s = policy.q_values(o["pixels"])
-        al_target = boot - alpha * (q_s.max(1).values - q_sa)
+        al_target = boot - alpha * (q_o.max(1).values - q_sa)
         extra = {f"mean |AL TD error| (alpha {alpha:g})": round(float((q_sa - al_target).abs().mean()), 2)}
     print(json.dumps({
         "run": str(args.run), "weights": str(weights), "states": len(q), "mean Q": round(float(q.mean()), 2),
