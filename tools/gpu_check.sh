@@ -8,22 +8,23 @@ OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
 export PYTHONUNBUFFERED=1 SDL_VIDEODRIVER=dummy PYTHONDONTWRITEBYTECODE=1
 step() { echo "=== $(date +%T) $*"; }
+want() { [[ " ${STEPS:-cuda batched e2e suite} " == *" $1 "* ]]; }  # STEPS="cuda e2e": a subset
 step install
 python3 -m pip install -q --no-index --no-deps .wheels/*.whl || exit 1
 python3 -m pip install -q --no-deps --no-build-isolation --ignore-requires-python -e . || exit 1
 python3 -c "import sys, torch, torchrl, tensordict, memrl.envs; print(sys.version.split()[0], torch.__version__, torchrl.__version__, tensordict.__version__, torch.cuda.get_device_name()); import torchrl._torchrl as t; print('torchrl C++ extension loaded')" 2>&1 | tail -3
 nproc; nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-step cuda tests
-timeout "${T_CUDA:-180}" python3 -m pytest -q -p no:cacheprovider tests/test_train_cuda.py tests/test_batched_cuda.py tests/test_frame_store_cuda.py
-step bench batched on cuda
+want cuda && { step cuda tests
+timeout "${T_CUDA:-180}" python3 -m pytest -q -p no:cacheprovider tests/test_train_cuda.py tests/test_batched_cuda.py tests/test_frame_store_cuda.py; }
+want batched && { step bench batched on cuda
 timeout "${T_BATCHED:-90}" python3 -m memrl.bench batched batched.device=cuda batched.seconds=2 batched.path_time=0 batched.reference_steps=500 \
-  batched.threads=4 hydra.run.dir="$OUT/batched"
-step bench e2e on cuda
+  batched.threads=4 hydra.run.dir="$OUT/batched"; }
+want e2e && { step bench e2e on cuda
 timeout "${T_E2E:-150}" python3 -m memrl.bench e2e e2e.device=cuda "e2e.gpu_num_envs=[16,256]" \
-  "e2e.gpu_batch_sizes=[32,256]" e2e.gpu_total_frames="${E2E_FRAMES:-20000}" e2e.learner_seconds=3 \
-  hydra.run.dir="$OUT/e2e"
+  "e2e.gpu_batch_sizes=[32,256]" e2e.gpu_total_frames="${E2E_FRAMES:-6000}" e2e.learner_seconds=3 \
+  "e2e.num_envs=[16]" "e2e.overlap=[true]" hydra.run.dir="$OUT/e2e"; }
 rm -rf "$OUT/batched/.hydra" "$OUT/e2e/.hydra"
-step engine tests, device auto = cuda
+want suite && { step engine tests, device auto = cuda
 timeout "${T_SUITE:-80}" python3 -m pytest -q -p no:cacheprovider -n 8 tests/test_batched.py \
-  tests/test_batched_state.py tests/test_engine_runner.py tests/test_frame_store.py tests/test_train_batched.py
+  tests/test_batched_state.py tests/test_engine_runner.py tests/test_frame_store.py tests/test_train_batched.py; }
 step done

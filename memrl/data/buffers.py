@@ -17,8 +17,8 @@ transition (TorchRL's plain ``LazyTensorStorage``). Samples are the same either 
 
 ``streams=N``: the agent's transitions arrive from N envs stepped together, one
 ``extend`` of N rows per env step (row i = env i; see :mod:`memrl.data.frame_store`).
-``device``: where both parts store and sample (TorchRL's samplers draw CPU indices; the
-batches come back on ``device``).
+``device``: where both parts store and sample; indices are drawn on the CPU on any device
+(:mod:`memrl.data.host_draw`), and the batches come back on ``device``.
 """
 
 from __future__ import annotations

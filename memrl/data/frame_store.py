@@ -75,7 +75,6 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDictBase, is_tensor_collection
-from torchrl.data import LazyTensorStorage
 
 from memrl.data.frame_plan import (
     Pixels,
@@ -85,6 +84,7 @@ from memrl.data.frame_plan import (
     plan_write,
     ring_frames,
 )
+from memrl.data.host_draw import HostDrawStorage
 from memrl.data.stride_plan import not_strided_message, plan_strided
 
 __all__ = ["REFS_KEY", "FrameRingOverflow", "FrameStackStorage", "count_frames", "ring_frames"]
@@ -105,7 +105,7 @@ def _slots(cursor: Any, n: int) -> torch.Tensor:
     return torch.as_tensor(cursor, dtype=torch.long).reshape(-1)
 
 
-class FrameStackStorage(LazyTensorStorage):
+class FrameStackStorage(HostDrawStorage):
     """``LazyTensorStorage`` of transitions whose stacked frames are stored once, in a ring.
 
     It takes and gives the usual transition layout (``pixels`` and ``("next", "pixels")``

@@ -35,9 +35,9 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from torchrl.data import LazyTensorStorage
 
 from memrl.data.frame_store import REFS_KEY, FrameStackStorage
+from memrl.data.host_draw import HostDrawStorage
 
 __all__ = ["ROW_KEY", "STEPS_KEY", "NStepFrameStackStorage", "NStepLazyTensorStorage",
            "nstep_storage"]
@@ -156,7 +156,7 @@ class NStepFrameStackStorage(_NStep, FrameStackStorage):
         return (refs[nxt][:, : self.stack] == refs[prev][:, -self.stack:]).all(1)
 
 
-class NStepLazyTensorStorage(_NStep, LazyTensorStorage):
+class NStepLazyTensorStorage(_NStep, HostDrawStorage):
     """TorchRL ``LazyTensorStorage`` (full stacks) sampling n-step transitions.
 
     Args:
@@ -202,7 +202,7 @@ def nstep_storage(max_size: int, *, compact: bool, n_step: int = 1, gamma: float
         ring["stride"] = stride
     if n_step == 1:
         return (FrameStackStorage(max_size, **ring) if compact
-                else LazyTensorStorage(max_size, device=device))
+                else HostDrawStorage(max_size, device=device))
     if compact:
         return NStepFrameStackStorage(max_size, n_step=n_step, gamma=gamma, **ring)
     return NStepLazyTensorStorage(max_size, n_step=n_step, gamma=gamma, streams=streams,
