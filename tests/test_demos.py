@@ -421,7 +421,7 @@ def test_record_example_and_bad_options(compose_cfg, tmp_path):
 
 def test_dataset_recorded_before_a_later_key_still_loads(copy):
     """A dataset whose stored env config predates ``bev.path_length`` (the key is absent; as
-    ``frame_stack``, ``frame_stride`` and ``bev.path_time``)
+    ``frame_stack``, ``frame_stride``, ``bev.path_time`` and ``shaping``)
     loads into the default env, keeps its hash, and is refused by an env that draws the path."""
     import hashlib
 
@@ -431,6 +431,7 @@ def test_dataset_recorded_before_a_later_key_still_loads(copy):
     assert meta["env_config"].pop("frame_stack") == 1  # a later key too
     assert meta["env_config"].pop("frame_stride") == 1  # and another
     assert meta["env_config"]["bev"].pop("path_time") == 0.0  # and another
+    assert meta["env_config"].pop("shaping") == {"weight": 0.0, "horizon": 3.0, "gamma": 0.95}
     # The hash as the version without the key computed it: over every stored key.
     old = demos_mod._canonical({k: v for k, v in meta["env_config"].items()
                                 if k not in demos_mod.EPISODE_KEYS})
@@ -442,3 +443,5 @@ def test_dataset_recorded_before_a_later_key_still_loads(copy):
         load_demos(copy, env_cfg={**SHORT, "bev": {"path_length": 20.0}})
     with pytest.raises(DemoDatasetError, match="bev"):
         load_demos(copy, env_cfg={**SHORT, "bev": {"path_time": 2.0}})
+    with pytest.raises(DemoDatasetError, match="shaping"):  # shaped rewards are other transitions
+        load_demos(copy, env_cfg={**SHORT, "shaping": {"weight": 1.0}})

@@ -99,7 +99,8 @@ def _canonical(value: Any) -> Any:
 
 
 LATER_KEYS: dict[tuple[str, ...], Any] = {("bev", "path_length"): 0.0, ("frame_stack",): 1,
-                                          ("frame_stride",): 1, ("bev", "path_time"): 0.0}
+                                          ("frame_stride",): 1, ("bev", "path_time"): 0.0,
+                                          ("shaping",): {"weight": 0.0, "horizon": 3.0, "gamma": 0.95}}
 """Env keys added after datasets were first recorded, with the value that draws what older
 versions drew: at that value a key is left out of the hash, so older datasets (and their
 hashes) stay valid; any other value changes the hash."""

@@ -35,7 +35,7 @@ LEGACY_VALUES: dict[str, Any] = {
               "n_step": 1, "augment_shift": 0, "advantage_learning": 0.0},
     "env": {"bev": {"path_length": 0.0, "path_time": 0.0}, "initial_offset": 0.0, "initial_heading": 0.0,
             "initial_curvature": 0.0, "frame_stack": 1, "num_envs": 1,
-            "frame_stride": 1},
+            "frame_stride": 1, "shaping": {"weight": 0.0, "horizon": 3.0, "gamma": 0.95}},
     "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
                         "keep_best": True, "init": None},
              "stage2": {"demo_fraction": 0.0, "margin_weight": 0.0},
@@ -47,7 +47,7 @@ the versions before them did: a checkpoint without a key is compared as if it he
 value, so resuming it asks for exactly that value (``agent.overlap=false`` ...)."""
 
 
-LEGACY_NODES = ("example", "network")
+LEGACY_NODES = ("example", "network", "shaping")
 """Keys of :data:`LEGACY_VALUES` whose value is a whole node added at once (other dict values
 only descend into the nodes a config has)."""
 

@@ -137,6 +137,10 @@ def check_train_config(cfg: DictConfig) -> None:
     _need(a.n_step >= 1, "agent.n_step", f"must be >= 1, got {a.n_step}")
     _need(0 <= a.advantage_learning < 1, "agent.advantage_learning",
           f"must be in [0, 1), got {a.advantage_learning}")
+    shaping = cfg.env.shaping
+    _need(shaping.weight == 0 or shaping.gamma == a.gamma, "env.shaping.gamma",
+          f"must equal agent.gamma ({a.gamma}) when env.shaping.weight > 0, got {shaping.gamma}: "
+          "the shaping leaves the optimal policy unchanged only with the learner's discount")
     _need(0 <= cfg.buffer.crash_share < 1, "buffer.crash_share",
           f"must be in [0, 1), got {cfg.buffer.crash_share}")
     _need(0 <= cfg.buffer.priority <= 1, "buffer.priority", f"must be in [0, 1], got {cfg.buffer.priority}")

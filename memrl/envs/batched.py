@@ -34,6 +34,7 @@ from memrl.envs.config import (
 from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.crash import NO_CRASH, classify_rows
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
+from memrl.envs.risk import risk, shaping_reward
 from memrl.envs.scene import max_cars, sample_scene
 from memrl.envs.stride import history_length
 from memrl.envs.vehicles import ACTIONS, IDLE, N_ACTIONS
@@ -297,6 +298,7 @@ class BatchedLaneChange:
         cfg, w, b = self.cfg, self.cfg.lane_width, self._arrays  # numpy views on CPU, else the tensors
         acts = car_actions.numpy() if self._on_cpu else car_actions
         low, high = cfg.speed_limits
+        risk_before = self._risk(b) if cfg.shaping.weight > 0 else None
         physics.apply_actions(b["state"], b["ds"][acts], b["dk"][acts], (low, high), cfg.curvature_limit)
         physics.move(b["state"], cfg.dt)
         b["steps"] += 1
@@ -310,6 +312,9 @@ class BatchedLaneChange:
         self._head = (self._head + 1) % self.history
         comps, on_target = self._components(b)
         reward = physics.weighted_sum(comps, self._weights)
+        if risk_before is not None:
+            reward = reward + shaping_reward(risk_before, self._risk(b), b["crashed"], cfg.shaping.weight,
+                                             cfg.shaping.gamma)
         crashed, reached = b["crashed"], b["reached"]
         parts = (reward, comps, crashed, b["steps"] >= cfg.duration, crashed, on_target, reached)
         out = StepOut(*(torch.from_numpy(x.copy()) if self._on_cpu else x.clone() for x in parts))
@@ -333,6 +338,12 @@ class BatchedLaneChange:
         self._install(idx, scenes)
         self._first_frames(idx, self._scratch[self._head, : len(done)])
         return out
+
+    def _risk(self, b: dict[str, Any]) -> Any:
+        """Collision risk ``[N]`` of every env's state (:func:`memrl.envs.risk.risk`)."""
+        cfg = self.cfg
+        return risk(b["state"], b["present"], cfg.lane_width, cfg.lanes_count, cfg.vehicle_length,
+                    cfg.vehicle_width, cfg.shaping.horizon)
 
     def _classify_crashes(self, new: Any) -> None:
         """Kind and closing speed of the crashes of envs ``new`` (bool ``[N]``), this step's

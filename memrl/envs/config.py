@@ -85,6 +85,21 @@ class RewardConfig:
 
 
 @dataclass
+class ShapingConfig:
+    """Potential-based shaping of the reward by collision risk (:mod:`memrl.envs.risk`): every
+    step's reward gains ``weight (risk(s) - gamma risk(s'))`` (0 after a crash), which leaves
+    the task's optimal policy unchanged. Off by default; the paper's reward is Table II's."""
+
+    weight: float = 0.0
+    """Weight of the potential ``Phi = -weight risk`` (0: no shaping)."""
+    horizon: float = 3.0
+    """Time to collision [s] at which the risk is 0; it grows linearly to 1 at contact."""
+    gamma: float = 0.95
+    """Discount of the shaping; must equal the learner's ``agent.gamma`` (checked at the
+    start of training), or the optimal policy is no longer the task's."""
+
+
+@dataclass
 class OpponentConfig:
     """Who drives the other cars (Sec. IV-A: constant speed, or a copy of an earlier agent)."""
 
@@ -162,6 +177,8 @@ class LaneChangeConfig:
     """Speed at or below which the agent counts as stopped [m/s]."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Weights of the named reward components."""
+    shaping: ShapingConfig = field(default_factory=ShapingConfig)
+    """Potential-based shaping by collision risk (off by default)."""
     bev: BEVConfig = field(default_factory=BEVConfig)
     """The agent's bird's-eye-view observation."""
     scene: SceneRenderConfig = field(default_factory=SceneRenderConfig)
@@ -268,6 +285,9 @@ RULES: dict[str, tuple[Any, str]] = {
     "reward.stopped": _num(),
     "reward.target_lane": _num(),
     "reward.non_target_lane": _num(),
+    "shaping.weight": _num(ge=0),
+    "shaping.horizon": _num(gt=0),
+    "shaping.gamma": _num(gt=0, le=1),
     "bev.width": _int(8),
     "bev.height": _int(8),
     "bev.lateral_scale": _num(gt=0),

@@ -20,6 +20,7 @@ from memrl.envs.config import LaneChangeConfig, env_config_dict, max_car_speed, 
 from memrl.envs.controllers import CarController, Opponents, make_opponents
 from memrl.envs.crash import NO_CRASH, classify
 from memrl.envs.render import BEVRenderer, View, car_corners
+from memrl.envs.risk import risk, shaping_reward
 from memrl.envs.scene import sample_scene
 from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle, validate_action
@@ -104,6 +105,8 @@ class LaneChangeEnv(AbstractEnv):
         self._opponents: Opponents | None = None
         self._scene: BEVRenderer | None = None
         self._components: dict[str, float] | None = None
+        self._risk_now: float | None = None  # risk of the current state (env.shaping), lazily
+        self._risk_before = 0.0  # of the state before the last step
         self._episode = 0
         self._stack: np.ndarray | None = None
         self._stack_key: tuple[int, int] | None = None
@@ -133,7 +136,7 @@ class LaneChangeEnv(AbstractEnv):
     # ----------------------------------------------------------------------------- scene
     def _reset(self) -> None:
         cfg = self.cfg
-        self._components = None
+        self._components = self._risk_now = None
         self.config["simulation_frequency"] = self.config["policy_frequency"] = 1.0 / cfg.dt
         self._make_road()
         if self._opponents is None:  # built once per env: a learned pool is loaded once
@@ -195,12 +198,14 @@ class LaneChangeEnv(AbstractEnv):
         car.controller = controller
         self.others.append(car)
         self.road.vehicles.append(car)
+        self._risk_now = None
         return car
 
     def remove_others(self) -> None:
         """Remove every other car from the road."""
         self.road.vehicles = [self.vehicle]
         self.others = []
+        self._risk_now = None
 
     def place_agent(self, x: float, y: float, speed: float, heading: float = 0.0,
                     curvature: float = 0.0) -> None:
@@ -210,7 +215,7 @@ class LaneChangeEnv(AbstractEnv):
         car.heading, car.speed, car.curvature = heading, speed, curvature
         car.crashed = False
         car.on_state_update()
-        self._components = None
+        self._components = self._risk_now = None
         self.reached_target = self._inside_target_lane(*self._lateral_extent(car))
 
     def _cars_of(self, controller: CarController) -> list[CurvatureVehicle]:
@@ -219,7 +224,8 @@ class LaneChangeEnv(AbstractEnv):
     # ------------------------------------------------------------------------------ step
     def _simulate(self, action: Any = None) -> None:
         """One action step: every car takes its action, then all move by ``dt``."""
-        self._components = None
+        self._risk_before = self.state_risk() if self.cfg.shaping.weight > 0 else 0.0
+        self._components = self._risk_now = None
         if action is not None:
             action = validate_action(action)
         # Every car chooses before any car's action applies (the batched engine's order): a
@@ -291,8 +297,23 @@ class LaneChangeEnv(AbstractEnv):
         }
 
     def _reward(self, action: Any = None) -> float:
-        weights = self.cfg.reward
-        return float(sum(getattr(weights, k) * v for k, v in self._rewards(action).items()))
+        weights, shaping = self.cfg.reward, self.cfg.shaping
+        reward = float(sum(getattr(weights, k) * v for k, v in self._rewards(action).items()))
+        if shaping.weight > 0:
+            reward += float(shaping_reward(self._risk_before, self.state_risk(), self.vehicle.crashed,
+                                           shaping.weight, shaping.gamma))
+        return reward
+
+    def state_risk(self) -> float:
+        """Collision risk of the current state in [0, 1] (:func:`memrl.envs.risk.risk`)."""
+        if self._risk_now is None:
+            cfg = self.cfg
+            rows = np.array([[c.position[0], c.position[1], c.heading, c.speed, c.curvature]
+                             for c in (self.vehicle, *self.others)], dtype=np.float64)
+            self._risk_now = float(risk(rows, np.ones(len(rows), dtype=bool), cfg.lane_width,
+                                        cfg.lanes_count, cfg.vehicle_length, cfg.vehicle_width,
+                                        cfg.shaping.horizon))
+        return self._risk_now
 
     def _is_terminated(self) -> bool:
         return bool(self.vehicle.crashed)
