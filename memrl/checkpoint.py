@@ -115,7 +115,7 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     """The stage-1 weights that ``mode.stage1.init`` names, checked: present, trained in the
     same env config as ``env_cfg`` (the pixels and the dynamics mean the same) when the run
     folder's ``config.yaml`` is there to tell, and, with ``network`` (a ``network`` config
-    node), of that architecture. The reward weights (``env.reward``) may differ, logged: stage 2
+    node), of that architecture. The reward (``env.reward``, ``env.shaping``) may differ, logged: stage 2
     fits its Q-values to its own run's reward, as it does to its own ``agent.gamma``."""
     file = stage1_file(path)
     check_stage1(file)
@@ -136,12 +136,14 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
         if theirs is not None:
             their_env, our_env = hashed_env_config(theirs), hashed_env_config(env_cfg)
             their_reward, our_reward = their_env.pop("reward", None), our_env.pop("reward", None)
+            their_shaping, our_shaping = their_env.pop("shaping", None), our_env.pop("shaping", None)
             if their_env != our_env:
                 raise CheckpointError(f"{file}: trained in another env config than this run's "
                                       f"(see {run_cfg}, key env)")
-            if their_reward != our_reward:
-                log.info("%s: trained under the reward %s; stage 2 trains under this run's %s",
-                         file, their_reward, our_reward)
+            if (their_reward, their_shaping) != (our_reward, our_shaping):
+                log.info("%s: trained under the reward %s (shaping %s); stage 2 trains under this "
+                         "run's %s (shaping %s)", file, their_reward, their_shaping or "off", our_reward,
+                         our_shaping or "off")
     return file
 
 

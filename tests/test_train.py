@@ -120,6 +120,11 @@ def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg
         assert stage1_source(tmp_path / "src", other.env) == tmp_path / "src" / "checkpoints" / "stage1.pt"
     assert re.search(r"trained under the reward \{'collision': -5, .*; stage 2 trains under this run's "
                      r"\{'collision': -50, ", caplog.text)
+    shaped = compose_cfg("train", b + ["env.shaping.weight=2.0"])  # shaping is reward too
+    with caplog.at_level(logging.INFO, logger="memrl.checkpoint"):
+        assert stage1_source(tmp_path / "src", shaped.env).name == "stage1.pt"
+    assert re.search(r"\(shaping off\); stage 2 trains under this run's .*\(shaping \{'weight': 2, ",
+                     caplog.text)
     # refused at start, one line each, no run folder left
     for overrides, match in (
             ([f"mode.stage1.init={tmp_path / 'nothing'}"], "no stage-1 network"),
