@@ -30,6 +30,14 @@ def test_cuda_every_cars_path_matches_the_reference():
     compare(config, list(range(500, 516)), 300, random_actions(0.5), device="cuda")
 
 
+def test_cuda_shaped_rewards_match_the_reference():
+    # risk reads the states, which may differ in the last bit here: 1e-6 is far above what
+    # 1e-9 of state can move w (risk(s) - gamma risk(s')) unless a gap closes at < 1e-3 m/s
+    config = {**NON_GOAL, "shaping": {"weight": 2.0}}
+    tally = compare(config, list(range(600, 616)), 200, random_actions(1.0), device="cuda", reward_atol=1e-6)
+    assert tally.steps == 16 * 200 and tally.collisions > 0
+
+
 def test_cuda_engine_runs_thousands_of_envs():
     from memrl.envs.batched import BatchedLaneChange
 
