@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from memrl.envs.batched_physics import lateral_extent
+
 __all__ = ["risk", "shaping_reward"]
 
 X, Y, HEADING, SPEED = range(4)
@@ -75,17 +77,12 @@ def risk(state: Any, present: Any, lane_width: float, lanes_count: int, length: 
                  there & (xp.abs(dy) < width))
     across = _ttc(xp.abs(dy) - width, xp.sign(dy) * (vy[..., :1] - vy[..., 1:]),
                   there & (xp.abs(dx) < length))
-    # the body's lateral half-extent, as the wall test computes it (heading-dependent)
-    h = state[..., 0, HEADING]
-    half = 0.5 * (length * xp.abs(xp.sin(h)) + width * xp.abs(xp.cos(h)))
-    y, vy0 = state[..., 0, Y], vy[..., 0]
+    lo, hi = lateral_extent(state[..., 0, :], length, width)  # the wall test's body extent
+    vy0 = vy[..., 0]
     low_edge, high_edge = -0.5 * lane_width, (lanes_count - 0.5) * lane_width
-    yes = xp.ones_like(y, dtype=bool) if xp is np else torch.ones_like(y, dtype=torch.bool)
-    edges = xp.minimum(_ttc(y - half - low_edge, -vy0, yes), _ttc(high_edge - (y + half), vy0, yes))
-    ttc = edges
+    ttc = xp.minimum(_ttc(lo - low_edge, -vy0, True), _ttc(high_edge - hi, vy0, True))
     if others.shape[-2]:
-        cars = xp.minimum(along, across)
-        ttc = xp.minimum(ttc, cars.min(-1) if xp is np else cars.amin(-1))
+        ttc = xp.minimum(ttc, xp.amin(xp.minimum(along, across), -1))
     return xp.clip(1.0 - ttc / horizon, 0.0, 1.0)
 
 
