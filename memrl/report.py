@@ -214,7 +214,8 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     print(md)
     if cfg.fig5:
         files.fig5 = figures.learning_curves(
-            figures.find_training_runs([str(p) for p in cfg.runs]), out / "fig5.png",
+            figures.find_training_runs([str(p) for p in (cfg.runs if cfg.get("train_runs") is None
+                                                         else cfg.train_runs)]), out / "fig5.png",
             window=int(cfg.smooth), confidence=scfg.confidence, n_resamples=int(cfg.curve_resamples))
     if cfg.rollouts.rows:
         _rollouts(cfg, results, out, files)

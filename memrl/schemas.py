@@ -349,6 +349,8 @@ class ReportSchema:
     row_ignore: list[str] = MISSING
     """Run config keys (and prefixes) that never split a Table III row."""
     fig5: bool = MISSING
+    train_runs: list[str] | None = None
+    """Folders of the training runs whose curves Fig. 5 draws (None: those below ``runs``)."""
     smooth: int = spec(ge=1)
     curve_resamples: int = spec(ge=1)
     rollouts: RolloutsSchema = field(default_factory=RolloutsSchema)
@@ -371,6 +373,9 @@ def check_report(cfg: DictConfig) -> None:
     for key in cfg.row_ignore:
         if not str(key).strip() or " " in str(key):
             raise config_error("row_ignore", f"expected config keys such as paths or log_every, got {key!r}")
+    for item in cfg.get("train_runs") or []:
+        if not Path(str(item)).exists():
+            raise config_error("train_runs", f"no such folder {item}")
     for item in cfg.runs:
         if not Path(str(item)).exists():
             raise config_error("runs", f"no such folder {item}")

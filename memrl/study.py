@@ -5,7 +5,9 @@ seed) run under ``runs/``, its evaluation on the protocol (``runs/<run>/eval/``)
 weights evaluated too (``stage1/``), the scripted and random baselines (``baselines/``), then
 ``report.md``, ``table3.csv`` and the figures. The same command again resumes: finished runs
 are skipped, killed ones resume from their last checkpoint, finished evaluations are reused,
-and a finished study is only reported again. Pieces: :mod:`memrl.studies`.
+and a finished study is only reported again. Test traffic other than constant-speed cars
+(``protocol.opponent``) keeps its own folders (``eval_<traffic>/``, ``*_<traffic>/``) and its
+report in ``test_<traffic>/``: a second call reports the same runs against it. Pieces: :mod:`memrl.studies`.
 """
 
 from __future__ import annotations
@@ -132,11 +134,13 @@ def _quote(items: list[str]) -> str:
 
 
 def report_config(cfg: DictConfig, folders: list[Path], labels: list[str],
-                  comparisons: list[list[str]]) -> DictConfig:
-    """The report config of the study: its folders, its rows, the user's report overrides."""
+                  comparisons: list[list[str]], train_runs: list[Path]) -> DictConfig:
+    """The report config of the study: its evaluation folders, the training runs of Fig. 5, its
+    rows, the user's report overrides."""
     from memrl.studies.grid import compose_config
 
     overrides = [f"runs={_quote([str(f) for f in folders])}", "evaluate_missing=false",
+                 f"train_runs={_quote([str(f) for f in train_runs])}",
                  f"progress={str(bool(cfg.study.progress)).lower()}",
                  f"comparisons=[{','.join(_quote(p) for p in comparisons)}]",
                  f"rollouts.rows={_quote(labels)}", "rollouts.video=false",
@@ -189,27 +193,30 @@ def study(cfg: DictConfig) -> StudyResult:
     finished = [c for c in grid if c.finished()]
 
     settings = ev.EvalSettings(check_protocol(cfg.protocol), int(s.workers), int(s.batch), bool(s.progress))
+    tag = settings.tag  # test traffic other than constant: folders of its own, report in test_<tag>/
+    out_dir = folder / ev.suffixed("test", tag) if tag else folder
     evals = ev.Evaluations()
     for cell in finished:
         ev.evaluate_run(cell.run_dir, settings, evals)
         if s.stage1 and by_label(cell.mode).pretrains:
-            ev.evaluate_stage1(cell.run_dir, folder / "stage1" / cell.name, settings, evals)
-    for name in s.baselines:
-        ev.evaluate_baseline(str(name), grid[0].cfg.env, folder / "baselines" / str(name),  # type: ignore[union-attr]
-                             settings, evals)
+            ev.evaluate_stage1(cell.run_dir, folder / "stage1" / ev.suffixed(cell.name, tag), settings, evals)
+    baselines = [folder / "baselines" / ev.suffixed(str(b), tag) for b in s.baselines]
+    for name, place in zip(s.baselines, baselines, strict=True):
+        ev.evaluate_baseline(str(name), grid[0].cfg.env, place, settings, evals)  # type: ignore[union-attr]
 
     labels = list(dict.fromkeys(c.label for c in finished))
     pairs = comparison_pairs(grid, labels)
-    folders = [c.run_dir for c in finished] + [folder / "baselines" / str(b) for b in s.baselines]
-    result = StudyResult(folder, folder / "report.md", folder / "table3.csv", outcome.skipped,
+    folders = [ev.eval_folder(c.run_dir, settings) for c in finished] + baselines
+    result = StudyResult(folder, out_dir / "report.md", out_dir / "table3.csv", outcome.skipped,
                          outcome.trained, outcome.resumed, extended, outcome.failed, evals.made, evals.reused,
                          command=command_line(cfg))
     if not folders:
         raise RuntimeError(f"study {folder}: no run finished and no baseline to report")
-    rcfg = report_config(cfg, folders, labels + [str(b) for b in s.baselines if b == "scripted"], pairs)
-    files = report(rcfg, out_dir=folder)
+    rcfg = report_config(cfg, folders, labels + [str(b) for b in s.baselines if b == "scripted"], pairs,
+                         [c.run_dir for c in finished])
+    files = report(rcfg, out_dir=out_dir)
     scfg = stats_config(rcfg)
-    switch = stage_figure(finished, evals.runs, evals.stage1, folder / "fig_stage2.png", scfg,
+    switch = stage_figure(finished, evals.runs, evals.stage1, out_dir / "fig_stage2.png", scfg,
                           int(rcfg.curve_resamples))
     result.figures = [f for f in [files.fig5, switch, *files.strips] if f is not None]
     result.wall_s = time.perf_counter() - start

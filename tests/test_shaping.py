@@ -150,5 +150,6 @@ def test_a_short_run_with_shaping_trains_and_resumes(compose_cfg, tmp_path):
                                                             f"resume={tmp_path / 'run'}"]))
     assert again.frames >= 400
     with pytest.raises(Exception, match="shaping"):  # a resume must keep the shaping it trained with
-        train(compose_cfg("train", TINY + ["total_episodes=null", "total_frames=500", "agent.warmup_frames=100",
-                                           "buffer.capacity=1000", f"resume={tmp_path / 'run'}"]))
+        train(compose_cfg("train", TINY + ["total_episodes=null", "total_frames=500",
+                                           "agent.warmup_frames=100", "buffer.capacity=1000",
+                                           f"resume={tmp_path / 'run'}"]))

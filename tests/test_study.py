@@ -171,6 +171,48 @@ def test_running_it_again_retrains_nothing_and_writes_the_same_report(first):
     assert without_volatile(again.report.read_text()) == without_volatile(text)
 
 
+def test_a_second_call_reports_the_same_runs_against_mixed_traffic_beside_the_constant_report(first):
+    """protocol.opponent=mixed: evaluations into eval_mixed/ (and *_mixed/), the report into
+    test_mixed/; the constant evaluations and report stay as they were, and a constant call
+    afterwards still reports (and reuses) only its own."""
+    from hydra import compose, initialize_config_dir
+
+    from memrl.evaluation.results import read_result
+    from memrl.study import study
+
+    cfg, result = first
+    folder = result.dir
+    constant = {p: p.read_bytes() for p in folder.glob("**/eval.json")}
+    assert len(constant) == 8
+    report = result.report.read_text()
+    assert ", constant-speed cars" in report
+    pool = folder / "runs" / "Default_constant_s0"
+    mixed = f"protocol.opponent={{type:mixed,learned_fraction:0.5,pool:['{pool}'],epsilon:0.0}}"
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        mcfg = compose("study", [*study_overrides(folder), "study.train=false", mixed])
+    out = study(mcfg)
+    assert out.report == folder / "test_mixed" / "report.md" and out.trained == []
+    made = sorted(Path(p).relative_to(folder).as_posix() for p in out.evaluated)
+    assert made == ["baselines/random_mixed", "baselines/scripted_mixed",
+                    "runs/B_constant_s0/eval_mixed", "runs/B_constant_s1/eval_mixed",
+                    "runs/Default_constant_s0/eval_mixed", "runs/Default_constant_s1/eval_mixed",
+                    "stage1/B_constant_s0_mixed", "stage1/B_constant_s1_mixed"]
+    for place in made:
+        r = read_result(folder / place)
+        assert r.protocol["opponent"]["type"] == "mixed" and r.protocol["opponent"]["pool"] == [str(pool)]
+        assert r.env["opponent"]["type"] == "mixed"
+    assert {p: p.read_bytes() for p in constant} == constant
+    assert result.report.read_text() == report
+    md = out.report.read_text()
+    assert "mixed cars (each driven by one of 1 past agent with probability 0.5)" in md
+    assert "`eval_mixed/`" in md and "| B stage 1 | 2 |" in md
+    assert (folder / "test_mixed" / "table3.csv").is_file() and (folder / "test_mixed" / "fig5.png").is_file()
+    again = study(cfg)  # constant again: its own 8 evaluations, none of the mixed ones
+    assert again.evaluated == [] and len(again.reused) == 8
+    assert all("_mixed" not in p for p in again.reused)
+    assert without_volatile(again.report.read_text()) == without_volatile(report)
+
+
 def test_a_killed_run_resumes_and_only_it(first):
     """study.status says where each run stands; the study then trains just what is left."""
     from memrl.study import study, study_status

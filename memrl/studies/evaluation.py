@@ -2,7 +2,9 @@
 
 All on the study's protocol through :func:`memrl.evaluation.session.evaluate_candidate`. An
 evaluation is reused when its ``eval.json`` was made under the same protocol after the
-weights it scores were written; otherwise it is (re)made.
+weights it scores were written; otherwise it is (re)made. Test traffic other than the paper's
+constant-speed cars (``protocol.opponent``, e.g. mixed) has folders of its own beside the
+constant ones (:func:`test_traffic`), so one study is reported against both.
 """
 
 from __future__ import annotations
@@ -24,6 +26,23 @@ STAGE1_SUFFIX = " stage 1"
 """Row label of a mode B row's stage-1 weights: ``B stage 1``."""
 
 
+def traffic_type(opponent: Any) -> str:
+    """The opponent type of a protocol's ``opponent`` (a type name or an ``env.opponent`` node)."""
+    return str(opponent.get("type", "constant") if isinstance(opponent, Mapping) else opponent)
+
+
+def test_traffic(protocol: ProtocolConfig) -> str:
+    """The protocol's other cars as a folder suffix: '' for the paper's constant-speed traffic,
+    else the opponent type (``mixed``, ``learned``)."""
+    kind = traffic_type(protocol.opponent)
+    return "" if kind == "constant" else kind
+
+
+def suffixed(name: str, tag: str) -> str:
+    """``name`` for constant test traffic, ``name_<tag>`` for other traffic."""
+    return f"{name}_{tag}" if tag else name
+
+
 @dataclass
 class EvalSettings:
     """How evaluations run."""
@@ -32,6 +51,11 @@ class EvalSettings:
     workers: int = 1
     batch: int = 8
     progress: bool = False
+
+    @property
+    def tag(self) -> str:
+        """:func:`test_traffic` of the protocol."""
+        return test_traffic(self.protocol)
 
 
 @dataclass
@@ -76,13 +100,21 @@ def _evaluate(cand: Any, settings: EvalSettings, out: Evaluations, weights: Path
     return read_result(result.path)  # as a later call reads it (eval.json rounds the wall time)
 
 
+def eval_folder(run: Path, settings: EvalSettings) -> Path:
+    """Where a run's evaluation under the study's protocol goes: ``<run>/eval/``, or
+    ``<run>/eval_<traffic>/`` for other test traffic (a later protocol of the same traffic
+    replaces it)."""
+    return run / suffixed("eval", settings.tag)
+
+
 def evaluate_run(run: Path, settings: EvalSettings, out: Evaluations) -> None:
-    """The final weights of a finished run (into ``<run>/eval/``)."""
+    """The final weights of a finished run (into :func:`eval_folder`)."""
     from memrl.evaluation.policies import CheckpointSource
 
-    [cand] = CheckpointSource(str(run)).candidates()
+    subdir = eval_folder(run, settings).name
+    [cand] = CheckpointSource(str(run), subdir=subdir).candidates()
     cand.meta["policy_config"] = {"_target_": "memrl.evaluation.policies.CheckpointSource",
-                                  "run": str(run), "name": None, "subdir": "eval"}
+                                  "run": str(run), "name": None, "subdir": subdir}
     out.runs.append(_evaluate(cand, settings, out, run / "checkpoints" / "final.pt"))
 
 

@@ -12,7 +12,7 @@ import json
 import os
 import platform
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,7 +25,7 @@ from memrl.evaluation.crashes import crash_section
 from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.results import EvalResult
 from memrl.modes import MODES, by_label
-from memrl.studies.evaluation import STAGE1_SUFFIX
+from memrl.studies.evaluation import STAGE1_SUFFIX, suffixed, traffic_type
 from memrl.studies.grid import Cell
 from memrl.studies.traffic import traffic_section
 
@@ -398,11 +398,26 @@ def stage_figure(finished: Sequence[Cell], runs: Sequence[EvalResult], stage1: S
                         confidence=cfg.confidence, n_resamples=n_resamples)
 
 
+def traffic_words(opponent: Any) -> str:
+    """The protocol's other cars in words: ``constant-speed cars`` or e.g. ``mixed cars (each
+    driven by one of 3 past agents with probability 0.5)``."""
+    kind = traffic_type(opponent)
+    if kind == "constant":
+        return "constant-speed cars"
+    node = opponent if isinstance(opponent, Mapping) else {}
+    pool = len(node.get("pool") or [])
+    who = f"one of {pool} past agent{'' if pool == 1 else 's'}" if pool else "past agents"
+    if kind == "mixed":
+        return f"mixed cars (each driven by {who} with probability {node.get('learned_fraction', '?')})"
+    return f"{kind} cars (each driven by {who})"
+
+
 def write_report(inputs: ReportInputs, path: Path) -> Path:
     """Write ``report.md``."""
     results = [*inputs.runs, *inputs.baselines]
     rows = stats.table(results, inputs.stats)
     p = inputs.protocol
+    tag = "" if traffic_type(p.get("opponent", "constant")) == "constant" else traffic_type(p["opponent"])
     names = list(dict.fromkeys(c.variant for c in inputs.cells if c.variant))
     axes = [("variants", names), ("modes", [c.mode for c in inputs.cells]),
             ("traffic", [c.opponent for c in inputs.cells]), ("seeds", [str(c.seed) for c in inputs.cells])]
@@ -418,7 +433,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
              *budget(inputs.cells, inputs.finished),
              f"- protocol: {p['episodes']} episodes per initial lane ({', '.join(p['initial_lanes'])}), "
              f"{p['vehicles_count'][0]}\u2013{p['vehicles_count'][1]} other cars, {p['duration']} steps, "
-             f"scene seed {p['seed']}",
+             f"scene seed {p['seed']}, {traffic_words(p.get('opponent', 'constant'))}",
              f"- machine: {machine(inputs.cells)}",
              f"- total: {training_total(walls)}, evaluation {evals:,.0f} s",
              f"{WALL_PREFIX} {inputs.wall_s:,.0f} s for this call",
@@ -443,7 +458,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
               "`table3.csv` (this table, long format, with the paper's column), `table3.md` and "
               "`differences.csv` (every comparison), `report.json` (all numbers and sources), "
               "`study.json` (the grid), `runs/[<variant>_]<mode>_<traffic>_s<seed>/` (each run and its "
-              "`eval/`), "
-              "`stage1/` (mode B's stage-1 evaluations), `baselines/`.", ""]
+              f"`{suffixed('eval', tag)}/`), "
+              f"`stage1/` (mode B's stage-1 evaluations{f', `*_{tag}/`' if tag else ''}), `baselines/`.", ""]
     path.write_text("\n".join(lines))
     return path
