@@ -135,6 +135,7 @@ ROWS = [
     ("report", ["runs=[.]", "bootstrap_seed=-1"], "bootstrap_seed"),
     ("report", ["runs=[.]", "comparisons=[[B]]"], "comparisons"),
     ("report", ["runs=[.]", "row_ignore=[seed,'']"], "row_ignore"),
+    ("report", ["runs=[.]", "train_runs=[/nonexistent/run]"], "train_runs"),
     ("report", ["runs=[.]", "smooth=0"], "smooth"),
     ("report", ["runs=[.]", "curve_resamples=0"], "curve_resamples"),
     ("report", ["runs=[.]", "rollouts.count=0"], "rollouts.count"),
