@@ -417,7 +417,8 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
     results = [*inputs.runs, *inputs.baselines]
     rows = stats.table(results, inputs.stats)
     p = inputs.protocol
-    tag = "" if traffic_type(p.get("opponent", "constant")) == "constant" else traffic_type(p["opponent"])
+    kind = traffic_type(p["opponent"])
+    tag = "" if kind == "constant" else kind
     names = list(dict.fromkeys(c.variant for c in inputs.cells if c.variant))
     axes = [("variants", names), ("modes", [c.mode for c in inputs.cells]),
             ("traffic", [c.opponent for c in inputs.cells]), ("seeds", [str(c.seed) for c in inputs.cells])]
@@ -433,7 +434,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
              *budget(inputs.cells, inputs.finished),
              f"- protocol: {p['episodes']} episodes per initial lane ({', '.join(p['initial_lanes'])}), "
              f"{p['vehicles_count'][0]}\u2013{p['vehicles_count'][1]} other cars, {p['duration']} steps, "
-             f"scene seed {p['seed']}, {traffic_words(p.get('opponent', 'constant'))}",
+             f"scene seed {p['seed']}, {traffic_words(p['opponent'])}",
              f"- machine: {machine(inputs.cells)}",
              f"- total: {training_total(walls)}, evaluation {evals:,.0f} s",
              f"{WALL_PREFIX} {inputs.wall_s:,.0f} s for this call",
