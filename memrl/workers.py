@@ -51,14 +51,18 @@ def worker_start() -> None:
 
 @contextmanager
 def stopped_with_parent(pool: Any) -> Iterator[None]:
-    """On :class:`~memrl.signals.Interrupted` in the parent: cancel the jobs not started, send
-    SIGTERM to the workers (a training run writes its checkpoint and stops), wait for them
-    (no orphans, no leaked semaphores), then re-raise."""
+    """On a stop in the parent (:class:`~memrl.signals.Interrupted`, or inside a
+    :class:`~memrl.stop.SignalGuard` ``KeyboardInterrupt`` / :class:`~memrl.stop.Terminated`):
+    cancel the jobs not started, send SIGTERM to the workers (a training run writes its
+    checkpoint and stops), wait for them (no orphans, no leaked semaphores), then re-raise.
+    Without the guard's kinds, Ctrl-C in a multi-worker evaluation left the workers to drive
+    every queued episode before the command ended."""
     from memrl import signals
+    from memrl.stop import Terminated
 
     try:
         yield
-    except signals.Interrupted:
+    except (signals.Interrupted, KeyboardInterrupt, Terminated):
         processes = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
         for proc in processes:

@@ -105,7 +105,9 @@ def stop_and_resume(tmp_path: Path, args: list[str], uninterrupted: Path, sig: i
 
 @pytest.mark.parametrize("after_s", [4, 12], ids=["workers starting", "workers driving"])
 def test_signal_during_evaluation_stops_its_workers_and_leaves_no_folder(tmp_path, after_s):
-    proc = start(["memrl.evaluate", "policy=scripted", "protocol.episodes=400", "workers=2",
+    # 2 x 5,000 episodes: far more than the 300 s below allow, so an evaluation whose workers
+    # were not stopped (they drove every queued episode) fails here instead of passing late
+    proc = start(["memrl.evaluate", "policy=scripted", "protocol.episodes=5000", "workers=2",
                   "progress=false"], tmp_path)
     time.sleep(after_s)
     assert proc.poll() is None, proc.communicate()
