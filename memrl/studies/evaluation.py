@@ -31,11 +31,16 @@ def traffic_type(opponent: Any) -> str:
     return str(opponent.get("type", "constant") if isinstance(opponent, Mapping) else opponent)
 
 
-def test_traffic(protocol: ProtocolConfig) -> str:
-    """The protocol's other cars as a folder suffix: '' for the paper's constant-speed traffic,
+def traffic_tag(opponent: Any) -> str:
+    """A protocol's other cars as a folder suffix: '' for the paper's constant-speed traffic,
     else the opponent type (``mixed``, ``learned``)."""
-    kind = traffic_type(protocol.opponent)
+    kind = traffic_type(opponent)
     return "" if kind == "constant" else kind
+
+
+def test_traffic(protocol: ProtocolConfig) -> str:
+    """:func:`traffic_tag` of the protocol's ``opponent``."""
+    return traffic_tag(protocol.opponent)
 
 
 def suffixed(name: str, tag: str) -> str:

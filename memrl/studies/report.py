@@ -25,7 +25,7 @@ from memrl.evaluation.crashes import crash_section
 from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.results import EvalResult
 from memrl.modes import MODES, by_label
-from memrl.studies.evaluation import STAGE1_SUFFIX, suffixed, traffic_type
+from memrl.studies.evaluation import STAGE1_SUFFIX, suffixed, traffic_tag, traffic_type
 from memrl.studies.grid import Cell
 from memrl.studies.traffic import traffic_section
 
@@ -417,8 +417,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
     results = [*inputs.runs, *inputs.baselines]
     rows = stats.table(results, inputs.stats)
     p = inputs.protocol
-    kind = traffic_type(p["opponent"])
-    tag = "" if kind == "constant" else kind
+    tag = traffic_tag(p["opponent"])
     names = list(dict.fromkeys(c.variant for c in inputs.cells if c.variant))
     axes = [("variants", names), ("modes", [c.mode for c in inputs.cells]),
             ("traffic", [c.opponent for c in inputs.cells]), ("seeds", [str(c.seed) for c in inputs.cells])]
