@@ -587,8 +587,8 @@ class StudyConfig:
     """Overrides of every training run, e.g. [+experiment=smoke, total_frames=100000, device=cuda]."""
     variants: Any = None
     """Ablations: variant name -> train overrides added after ``train_overrides`` for its runs, e.g.
-    {cue: ['env.bev.path_length=20'], nocue: ['env.bev.path_length=0']}; the grid is then variants x
-    modes x opponents x seeds, run folders ``<variant>_<mode>_<traffic>_s<seed>``, rows ``B (cue)``
+    {paths: ['env.bev.path_time=2'], plain: ['env.bev.path_time=0']}; the grid is then variants x
+    modes x opponents x seeds, run folders ``<variant>_<mode>_<traffic>_s<seed>``, rows ``B (paths)``
     (null or {}: one grid with ``train_overrides`` only). Typed ``Any``: a typed dict node refuses
     new keys from the command line (Hydra's struct mode)."""
     report_overrides: list[str] = field(default_factory=list)
@@ -653,7 +653,7 @@ def check_study(cfg: DictConfig) -> None:
     lists = [("study.train_overrides", s.train_overrides)]
     if s.variants is not None and not isinstance(s.variants, DictConfig | dict):
         raise config_error("study.variants", f"give a mapping of names to lists of train overrides, e.g. "
-                           f"{{cue:['env.bev.path_length=20']}}, got {s.variants!r}")
+                           f"{{paths:['env.bev.path_time=2']}}, got {s.variants!r}")
     for key_, overrides in (s.variants or {}).items():
         name = str(key_)
         if not re.fullmatch(VARIANT_NAME, name):

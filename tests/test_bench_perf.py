@@ -224,8 +224,8 @@ def test_bench_stage1_reports_each_variant(compose_cfg, tmp_path):
     cfg = compose_cfg("bench", [
         "benchmarks=[stage1]", "stage1.updates=2", "stage1.check_every=1", "stage1.episodes=1",
         "stage1.drive_every=1", f"stage1.data_dir={tmp_path / 'data'}",
-        "stage1.variants=[{name:plain,overrides:['env.duration=40','agent.batch_size=8','mode.example.episodes=3','env.bev.path_length=0']},"
-        "{name:cue,overrides:['env.duration=40','agent.batch_size=8','env.bev.path_length=20','mode.example.episodes=3']},"
+        "stage1.variants=[{name:plain,overrides:['env.duration=40','agent.batch_size=8','mode.example.episodes=3','env.bev.path_time=0']},"
+        "{name:cue,overrides:['env.duration=40','agent.batch_size=8','env.bev.path_length=20','env.bev.path_time=0','mode.example.episodes=3']},"
         "{name:own,overrides:['env.duration=40','agent.batch_size=8'],demos:{episodes:2,"
         "tail_steps:3,driver:{merge_window:12.0},env:{initial_lane:non_goal,vehicles_count:0}}}]"])
     runs = bench(cfg, tmp_path)["stage1"]["runs"]

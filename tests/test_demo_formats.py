@@ -284,7 +284,7 @@ def test_training_refuses_a_bad_dataset_before_any_update(plain, tmp_path, compo
     copy = Path(shutil.copytree(plain[fmt], tmp_path / fmt))
     poke(copy, "action", "int64", 11, 99)
     cfg = compose_cfg("train", ["+mode=B", f"mode.demos_path={copy}", "env.duration=40",
-                                "env.vehicles_count=[0,5]", "env.bev.path_length=0"])  # as recorded
+                                "env.vehicles_count=[0,5]", "env.bev.path_time=0"])  # as recorded
     with pytest.raises(DemoDatasetError, match="action 99 at transition 11") as err:
         prior_knowledge(cfg)
     assert str(copy / "transitions" / "action.memmap") in str(err.value)

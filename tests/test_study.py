@@ -342,8 +342,8 @@ def test_the_command_line_runs_a_study(tmp_path):
     assert (folder / "study.log").is_file() and "python -m memrl.study study.dir=" in md
 
 
-VARIANTS = "{cue:['env.bev.path_length=20'],nocue:['env.bev.path_length=0']}"
-"""Two variants of the tiny study: the car's path drawn into the view, or not."""
+VARIANTS = "{paths:['env.bev.path_time=2'],plain:['env.bev.path_time=0']}"
+"""Two variants of the tiny study: every car's path drawn into the view, or not."""
 
 
 def test_a_study_of_variants_trains_reports_and_compares_each_variant_on_its_own(tmp_path, compose_cfg):
@@ -353,31 +353,31 @@ def test_a_study_of_variants_trains_reports_and_compares_each_variant_on_its_own
     cfg = compose_cfg("study", [*study_overrides(folder, report=("rollouts.rows=[]",)), "study.seeds=[0]",
                                 f"study.variants={VARIANTS}", "study.baselines=[random]"])
     result = study(cfg)
-    assert sorted(result.trained) == ["cue_B_constant_s0", "cue_Default_constant_s0",
-                                      "nocue_B_constant_s0", "nocue_Default_constant_s0"]
-    for name, length in (("cue", 20.0), ("nocue", 0.0)):
+    assert sorted(result.trained) == ["paths_B_constant_s0", "paths_Default_constant_s0",
+                                      "plain_B_constant_s0", "plain_Default_constant_s0"]
+    for name, seconds in (("paths", 2.0), ("plain", 0.0)):
         for mode in ("Default", "B"):
             saved = (folder / "runs" / f"{name}_{mode}_constant_s0" / "config.yaml").read_text()
-            assert f"path_length: {length}" in saved and f"variant: {name}" in saved
+            assert f"path_time: {seconds}" in saved and f"variant: {name}" in saved
         doc = json.loads((folder / "stage1" / f"{name}_B_constant_s0" / "eval.json").read_text())
         assert doc["name"] == f"B ({name}) stage 1"
     with result.table_csv.open() as f:
         rows = list(csv.DictReader(f))
-    assert {r["method"] for r in rows} == {"Default (cue)", "B (cue)", "Default (nocue)", "B (nocue)",
-                                           "random"}
+    assert {r["method"] for r in rows} == {"Default (paths)", "B (paths)", "Default (plain)",
+                                           "B (plain)", "random"}
     assert all(r["paper"] == "" for r in rows if "(" in r["method"])  # not the paper's setting
     with (folder / "differences.csv").open() as f:
         pairs = {(r["a"], r["b"]) for r in csv.DictReader(f)}
-    assert pairs == {("B (cue)", "Default (cue)"), ("B (nocue)", "Default (nocue)")}
+    assert pairs == {("B (paths)", "Default (paths)"), ("B (plain)", "Default (plain)")}
     md = result.report.read_text()
-    for text in ("| B (cue) | 1 |", "| Default (nocue) | 1 |", "| B (nocue) stage 1 |",
-                 "grid: variants cue, nocue \u00d7 modes Default, B",
-                 "- variant cue: `env.bev.path_length=20`",
-                 "| B (cue) \u2212 Default (cue) | random goal |", "| cue_B_constant_s0 |",
-                 'study.variants={cue:["env.bev.path_length=20"],nocue:["env.bev.path_length=0"]}'):
+    for text in ("| B (paths) | 1 |", "| Default (plain) | 1 |", "| B (plain) stage 1 |",
+                 "grid: variants paths, plain \u00d7 modes Default, B",
+                 "- variant paths: `env.bev.path_time=2`",
+                 "| B (paths) \u2212 Default (paths) | random goal |", "| paths_B_constant_s0 |",
+                 'study.variants={paths:["env.bev.path_time=2"],plain:["env.bev.path_time=0"]}'):
         assert text in md, text
     assert json.loads((folder / "study.json").read_text())["variants"] == {
-        "cue": ["env.bev.path_length=20"], "nocue": ["env.bev.path_length=0"]}
+        "paths": ["env.bev.path_time=2"], "plain": ["env.bev.path_time=0"]}
 
 
 def test_without_variants_the_run_folders_and_labels_are_unchanged(tmp_path, compose_cfg):
@@ -388,13 +388,13 @@ def test_without_variants_the_run_folders_and_labels_are_unchanged(tmp_path, com
         ("Default_constant_s0", "Default"), ("Default_constant_s1", "Default"),
         ("B_constant_s0", "B"), ("B_constant_s1", "B")]
     assert all(c.cfg.variant is None and c.variant is None for c in plain)
-    cfg = compose_cfg("study", [*study_overrides(tmp_path, [*TRAIN, "env.bev.path_length=5"], "[B]"),
+    cfg = compose_cfg("study", [*study_overrides(tmp_path, [*TRAIN, "env.bev.path_time=1"], "[B]"),
                                 "study.seeds=[0]", "study.opponents=[mixed]",
-                                "study.variants={cue:['env.bev.path_length=20'],base:[]}"])
+                                "study.variants={paths:['env.bev.path_time=3'],base:[]}"])
     grid = cells(cfg.study, tmp_path / "runs")
-    assert [(c.name, c.label) for c in grid] == [("cue_B_mixed_s0", "B (cue, mixed)"),
+    assert [(c.name, c.label) for c in grid] == [("paths_B_mixed_s0", "B (paths, mixed)"),
                                                  ("base_B_mixed_s0", "B (base, mixed)")]
-    assert [c.cfg.env.bev.path_length for c in grid] == [20.0, 5.0]  # the variant's after the study's
+    assert [c.cfg.env.bev.path_time for c in grid] == [3.0, 1.0]  # the variant's after the study's
 
 
 @pytest.mark.parametrize(("variants", "key", "text"), [

@@ -272,14 +272,14 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
                                                                             tmp_path):
     """A checkpoint whose config predates agent.precision/agent.overlap: resuming it with the
     new defaults is refused naming both; with the old behaviour's values it resumes."""
-    legacy = ["agent.precision=float32", "agent.overlap=false", "env.bev.path_length=0"]
+    legacy = ["agent.precision=float32", "agent.overlap=false", "env.bev.path_time=0"]
     train(compose_cfg("train", TINY + ["total_episodes=1", *legacy]), tmp_path)
     state_file = tmp_path / "checkpoints" / "last" / "state.pt"
     state = torch.load(state_file, weights_only=False)
     for key in ("precision", "overlap"):
         del state["config"]["agent"][key]
-    del state["config"]["env"]["bev"]["path_length"]
-    del state["config"]["env"]["bev"]["path_time"]  # a later key, at its default: no difference
+    del state["config"]["env"]["bev"]["path_time"]
+    del state["config"]["env"]["bev"]["path_length"]  # an older key, at today's default: no difference
     state["config"]["mode"]["stage1"] = {"max_updates": 30000}  # its mode node held every mode's keys
     del state["wall_s"]  # and the record of the run's training time
     torch.save(state, state_file)
@@ -291,9 +291,9 @@ def test_checkpoint_from_before_the_speed_keys_resumes_with_their_old_values(com
         train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}"]))
     assert "agent.precision: 'float32' (checkpoint) vs 'auto' (now)" in str(err.value)
     # keys older than those are compared at what the versions before them did
-    assert "env.bev.path_length: 0.0 (checkpoint) vs 20.0 (now)" in str(err.value)
+    assert "env.bev.path_time: 0.0 (checkpoint) vs 2.0 (now)" in str(err.value)
     assert "mode.stage1" not in str(err.value)  # a Default run never reads it
-    assert "path_time" not in str(err.value)
+    assert "path_length" not in str(err.value)
     resumed = train(compose_cfg("train", TINY + ["total_episodes=2", f"resume={tmp_path}",
                                                  *legacy]))
     assert resumed.resumed_from_episode == 1 and resumed.episodes == 2
