@@ -137,10 +137,10 @@ def check_train(cfg: DictConfig) -> None:
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
     check_env(cfg.env)
-    if cfg.env.opponent.type != "constant":  # every pattern must match a past agent
-        from memrl.modules.opponents import expand_pool
+    if cfg.env.opponent.type != "constant":  # every pattern must match a past agent that saw these frames
+        from memrl.modules.opponents import check_pool_views, pool_views
 
-        expand_pool([str(p) for p in cfg.env.opponent.pool])
+        check_pool_views(pool_views([str(p) for p in cfg.env.opponent.pool]), cfg.env)
     check_device(cfg.device, "device")
     if cfg.get("variant") is not None and not re.fullmatch(VARIANT_NAME, str(cfg.variant)):
         raise config_error("variant", f"a label of letters, digits, '_', '.', '-' (as study.variants "

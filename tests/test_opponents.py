@@ -122,3 +122,43 @@ def test_pool_accepts_run_folders_and_globs(pool, tmp_path):
     env = make_env({"opponent": {"type": "learned", "pool": [folder, pool[0].replace("agent1", "agent*")]}})
     ctrl = next(c for c in unwrap(env).controllers if c.kind == "learned")
     assert len(ctrl.networks) == 3
+
+
+def test_a_pool_agent_trained_on_other_frames_is_refused_in_both_engines(tmp_path):
+    """Learned cars see their views drawn with the env's BEV and stride: an agent trained on
+    other frames (here: without the drawn paths, or at another stride) is refused naming the
+    file and the key; agents of the same frames, and hand-saved ones without a config, drive."""
+    from memrl.envs.batched import BatchedLaneChange
+
+    plain = save_qnet(tmp_path / "plain" / "final.pt", QNetwork(), {"bev": {"path_time": 0.0}})
+    paths = save_qnet(tmp_path / "paths" / "final.pt", QNetwork(), {"bev": {"path_time": 2.0}})
+    strided = save_qnet(tmp_path / "strided" / "final.pt", QNetwork(),
+                        {"bev": {"path_time": 2.0}, "frame_stride": 3})
+    unknown = save_qnet(tmp_path / "unknown" / "final.pt", QNetwork(), {})
+    here = {"bev": {"path_time": 2.0}, "vehicles_count": 3}
+    for bad, text in ((plain, "bev.path_time 0.0 there, 2.0 here"), (strided, "frame_stride 3 there, 1 here")):
+        config = {"opponent": {"type": "learned", "pool": [str(paths), str(bad)]}, **here}
+        with pytest.raises(OpponentPoolError) as info:
+            LaneChangeEnv(config=config).reset(seed=0)
+        message = str(info.value)
+        assert str(bad) in message and text in message and "\n" not in message
+        with pytest.raises(OpponentPoolError, match=text):
+            BatchedLaneChange(config, num_envs=2)
+    config = {"opponent": {"type": "learned", "pool": [str(paths), str(unknown)]}, **here}
+    env = LaneChangeEnv(config=config)
+    env.reset(seed=0)
+    assert len(controller(env).networks) == 2
+    assert BatchedLaneChange(config, num_envs=2).learned is not None
+
+
+def test_training_refuses_a_pool_of_other_frames_before_writing_anything(tmp_path, compose_cfg):
+    """The config check loads each pool agent's env: memrl's defaults draw every car's path,
+    so an agent of the paper's plain frames cannot drive a learned car there."""
+    plain = save_qnet(tmp_path / "plain" / "final.pt", QNetwork(), {"bev": {"path_time": 0.0}})
+    cfg = compose_cfg("train", TINY + ["opponent=learned", f"env.opponent.pool=[{plain}]"])
+    with pytest.raises(OpponentPoolError, match="bev.path_time 0.0 there, 2.0 here"):
+        train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+    ok = compose_cfg("train", TINY + ["opponent=learned", f"env.opponent.pool=[{plain}]",
+                                      "env.bev.path_time=0"])
+    assert train(ok, tmp_path / "ok").episodes >= 1

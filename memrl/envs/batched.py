@@ -147,6 +147,8 @@ class BatchedLaneChange:
         self.device = resolve_device(device)
         self.opponents = opponents or make_opponents(cfg.opponent)
         self.learned = next((c for c in self.opponents.controllers if c.kind == "learned"), None)
+        if self.learned is not None:
+            self.learned.check_view(cfg)  # type: ignore[attr-defined]
         if self.learned is not None and self.learned.device != self.device:  # type: ignore[attr-defined]
             self.learned.to(self.device)  # type: ignore[attr-defined]
         n, c, dev = self.num_envs, 1 + max_cars(cfg), self.device

@@ -141,6 +141,9 @@ class LaneChangeEnv(AbstractEnv):
         self._make_road()
         if self._opponents is None:  # built once per env: a learned pool is loaded once
             self._opponents = make_opponents(cfg.opponent)
+            for controller in self._opponents.controllers:
+                if controller.kind == "learned":
+                    controller.check_view(cfg)  # type: ignore[attr-defined]
         scene = sample_scene(cfg, self.np_random, self._opponents.pool_size)
         self._episode += 1
         self.target_lane = scene.target_lane

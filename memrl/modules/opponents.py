@@ -9,13 +9,15 @@ networks are stacked with ``torch.func.stack_module_state`` and run under ``vmap
 from __future__ import annotations
 
 import copy
+import dataclasses
 import glob
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig, OmegaConf
 from torch.func import functional_call, stack_module_state
 
 from memrl.envs.controllers import CarController
@@ -48,6 +50,52 @@ def expand_pool(pool: Sequence[str]) -> list[Path]:
     return files
 
 
+def seen_view(env: Any) -> dict[str, Any] | None:
+    """What a Q-network reads of an env config: every ``bev`` key (the drawing) and the frame
+    stride. Keys an older run's config lacks take the env class's defaults, which draw what
+    the versions before those keys drew; None for no config (a network saved by hand with
+    ``save_qnet(path, net, {})``: its frames are unknown)."""
+    from memrl.envs.config import LaneChangeConfig, validate_env_config
+
+    if not isinstance(env, LaneChangeConfig):
+        values = OmegaConf.to_container(env, resolve=True) if isinstance(env, DictConfig) else dict(env or {})
+        if not values:
+            return None
+        env = validate_env_config({k: values[k] for k in ("bev", "frame_stride") if k in values})
+    return {**{f"bev.{k}": v for k, v in dataclasses.asdict(env.bev).items()},
+            "frame_stride": env.frame_stride}
+
+
+def check_pool_views(trained: Sequence[tuple[Path, dict[str, Any] | None]], env: Any) -> None:
+    """Refuse pool agents trained on other frames than ``env`` draws: a learned car's view is
+    drawn with this env's BEV and stride, which such an agent never saw.
+
+    Args:
+        trained: (checkpoint file, :func:`seen_view` of the env it was trained in) per agent.
+        env: the env config the learned cars drive in.
+    """
+    ours = seen_view(env) or {}
+    for file, theirs in trained:
+        if theirs is None:
+            continue
+        diff = [f"{k} {theirs.get(k)!r} there, {v!r} here" for k, v in ours.items() if theirs.get(k) != v]
+        if diff:
+            raise OpponentPoolError(f"opponent.pool: {file} was trained on other frames ({'; '.join(diff)}): "
+                                    "learned cars need agents trained with this env's bev and frame_stride")
+
+
+def pool_views(pool: Sequence[str]) -> list[tuple[Path, dict[str, Any] | None]]:
+    """(checkpoint file, :func:`seen_view` of its training env) of every pool entry."""
+    out = []
+    for file in expand_pool(pool):
+        try:
+            env = torch.load(file, weights_only=False, map_location="cpu").get("env") or {}
+        except Exception as err:  # truncated file, foreign pickle
+            raise OpponentPoolError(f"opponent.pool: {file}: not a memrl Q-network checkpoint ({err})") from err
+        out.append((file, seen_view(env)))
+    return out
+
+
 def _signature(net: torch.nn.Module) -> tuple:
     """What decides whether networks can be stacked: class and parameter names and shapes."""
     return (type(net), tuple((k, tuple(v.shape)) for k, v in net.state_dict().items()))
@@ -67,11 +115,16 @@ class LearnedCarController(CarController):
         from memrl.checkpoint import load_qnet
 
         nets: list[torch.nn.Module] = []
+        self.trained_on: list[tuple[Path, dict[str, Any] | None]] = []
+        """(file, :func:`seen_view` of its training env) of each agent loaded from a file."""
         for entry in pool:
             if isinstance(entry, torch.nn.Module):
                 nets.append(entry)
-            else:
-                nets += [load_qnet(f)[0] for f in expand_pool([entry])]
+                continue
+            for file in expand_pool([entry]):
+                net, env = load_qnet(file)
+                nets.append(net)
+                self.trained_on.append((file, seen_view(env)))
         if not nets:
             raise OpponentPoolError("opponent.pool is empty: learned cars need past agents")
         self.epsilon = float(epsilon)
@@ -92,6 +145,10 @@ class LearnedCarController(CarController):
         self._params = {k: v.detach() for k, v in params.items()}
         self._buffers = buffers
         self._skeleton = copy.deepcopy(self.networks[0]).to("meta")
+
+    def check_view(self, env: Any) -> None:
+        """Refuse (one line) pool agents trained on other frames than ``env`` draws."""
+        check_pool_views(self.trained_on, env)
 
     def to(self, device: torch.device | str) -> LearnedCarController:
         """Move the pool's networks to ``device`` (the batched engine's); returns self."""
