@@ -17,6 +17,7 @@ import logging
 import shlex
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -163,6 +164,7 @@ def study(cfg: DictConfig) -> StudyResult:
         cfg: the composed ``study`` config.
     """
     from memrl.evaluation.protocol import check_protocol
+    from memrl.modules.opponents import check_pool_views, pool_views
     from memrl.report import report, stats_config
     from memrl.schemas import check_train
     from memrl.studies import evaluation as ev
@@ -175,9 +177,13 @@ def study(cfg: DictConfig) -> StudyResult:
     s = cfg.study
     folder = Path(str(s.dir))
     grid = cells(s, folder / "runs")  # a bad train override stops here, before any write
+    protocol = check_protocol(cfg.protocol)
+    test_pool = pool_views([str(p) for p in protocol.opponent.get("pool") or []]) \
+        if isinstance(protocol.opponent, Mapping) else []
     for cell in grid:
         assert cell.cfg is not None
         check_train(cell.cfg)
+        check_pool_views(test_pool, cell.cfg.env)  # the test traffic's agents must know these frames
     if s.train:
         earlier = sources(grid, Path(str(s.extend_from))) if s.extend_from else []
         check_record(folder, cfg)
@@ -192,7 +198,7 @@ def study(cfg: DictConfig) -> StudyResult:
         check_record(folder, cfg)
     finished = [c for c in grid if c.finished()]
 
-    settings = ev.EvalSettings(check_protocol(cfg.protocol), int(s.workers), int(s.batch), bool(s.progress))
+    settings = ev.EvalSettings(protocol, int(s.workers), int(s.batch), bool(s.progress))
     tag = settings.tag  # test traffic other than constant: folders of its own, report in test_<tag>/
     out_dir = folder / ev.suffixed("test", tag) if tag else folder
     evals = ev.Evaluations()

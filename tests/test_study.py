@@ -397,6 +397,24 @@ def test_without_variants_the_run_folders_and_labels_are_unchanged(tmp_path, com
     assert [c.cfg.env.bev.path_time for c in grid] == [3.0, 1.0]  # the variant's after the study's
 
 
+def test_a_test_traffic_of_agents_trained_on_other_frames_is_refused_before_any_write(tmp_path, compose_cfg):
+    """protocol.opponent's learned cars drive on each run's frames: a pool agent trained on the
+    paper's plain frames cannot test runs of memrl's default frames (every car's path drawn),
+    so the study stops at its start naming the file, before training anything."""
+    from memrl.checkpoint import save_qnet
+    from memrl.modules.opponents import OpponentPoolError
+    from memrl.modules.qnet import QNetwork
+    from memrl.study import study
+
+    plain = save_qnet(tmp_path / "plain" / "final.pt", QNetwork(), {"bev": {"path_time": 0.0}})
+    folder = tmp_path / "s"
+    mixed = f"protocol.opponent={{type:mixed,learned_fraction:0.5,pool:['{plain}'],epsilon:0.0}}"
+    with pytest.raises(OpponentPoolError) as info:
+        study(compose_cfg("study", [*study_overrides(folder), mixed]))
+    assert str(plain) in str(info.value) and "bev.path_time 0.0 there, 2.0 here" in str(info.value)
+    assert not folder.exists()
+
+
 @pytest.mark.parametrize(("variants", "key", "text"), [
     ("{c*u:['env.bev.path_length=20']}", "study.variants", "variant name 'c*u'"),
     ("{a b:['env.bev.path_length=20']}", "study.variants", "variant name 'a b'"),
