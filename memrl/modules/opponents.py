@@ -74,7 +74,10 @@ def check_pool_views(trained: Sequence[tuple[Path, dict[str, Any] | None]], env:
         trained: (checkpoint file, :func:`seen_view` of the env it was trained in) per agent.
         env: the env config the learned cars drive in.
     """
-    ours = seen_view(env) or {}
+    from memrl.envs.config import LaneChangeConfig
+
+    ours = seen_view(env or LaneChangeConfig())  # an empty config is the env class's defaults
+    assert ours is not None
     for file, theirs in trained:
         if theirs is None:
             continue
@@ -86,14 +89,9 @@ def check_pool_views(trained: Sequence[tuple[Path, dict[str, Any] | None]], env:
 
 def pool_views(pool: Sequence[str]) -> list[tuple[Path, dict[str, Any] | None]]:
     """(checkpoint file, :func:`seen_view` of its training env) of every pool entry."""
-    out = []
-    for file in expand_pool(pool):
-        try:
-            env = torch.load(file, weights_only=False, map_location="cpu").get("env") or {}
-        except Exception as err:  # truncated file, foreign pickle
-            raise OpponentPoolError(f"opponent.pool: {file}: not a memrl Q-network checkpoint ({err})") from err
-        out.append((file, seen_view(env)))
-    return out
+    from memrl.checkpoint import load_qnet
+
+    return [(file, seen_view(load_qnet(file)[1])) for file in expand_pool(pool)]
 
 
 def _signature(net: torch.nn.Module) -> tuple:

@@ -4,7 +4,7 @@ All on the study's protocol through :func:`memrl.evaluation.session.evaluate_can
 evaluation is reused when its ``eval.json`` was made under the same protocol after the
 weights it scores were written; otherwise it is (re)made. Test traffic other than the paper's
 constant-speed cars (``protocol.opponent``, e.g. mixed) has folders of its own beside the
-constant ones (:func:`test_traffic`), so one study is reported against both.
+constant ones (:func:`traffic_tag`), so one study is reported against both.
 """
 
 from __future__ import annotations
@@ -38,11 +38,6 @@ def traffic_tag(opponent: Any) -> str:
     return "" if kind == "constant" else kind
 
 
-def test_traffic(protocol: ProtocolConfig) -> str:
-    """:func:`traffic_tag` of the protocol's ``opponent``."""
-    return traffic_tag(protocol.opponent)
-
-
 def suffixed(name: str, tag: str) -> str:
     """``name`` for constant test traffic, ``name_<tag>`` for other traffic."""
     return f"{name}_{tag}" if tag else name
@@ -59,8 +54,8 @@ class EvalSettings:
 
     @property
     def tag(self) -> str:
-        """:func:`test_traffic` of the protocol."""
-        return test_traffic(self.protocol)
+        """:func:`traffic_tag` of the protocol's ``opponent``."""
+        return traffic_tag(self.protocol.opponent)
 
 
 @dataclass
