@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -9,6 +11,7 @@ from memrl.dqn.loop import Trainer
 from memrl.train import train
 from tests.helpers import TINY
 
+DEVICE = "cuda"  # tests of this file run only where CUDA is
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
@@ -34,3 +37,35 @@ def test_a_few_hundred_updates_on_cuda_then_evaluation_and_resume_on_the_cpu(
                                                    f"resume={tmp_path / 'run'}"])
     resumed = train(cpu_cfg)
     assert resumed.frames >= 1400 and resumed.device == "cpu"
+
+
+def test_sigterm_stops_training_on_cuda_and_the_printed_command_finishes_it(tmp_path):
+    """A second GPU call (2026-11-27) saw a CUDA training process outlive its `timeout 65` by
+    minutes; on the CPU the same run stops within seconds. A stop that never comes fails here."""
+    import shlex
+    import signal
+    import subprocess
+    import sys
+
+    from tests.test_signals import ROOT, environ, run_folder, start, wait_for_episodes
+
+    args = ["+experiment=smoke", "total_frames=1500", "progress=false", f"device={DEVICE}",
+            "env.num_envs=16"]
+    proc = start(["memrl.train", *args], tmp_path)
+    try:
+        wait_for_episodes(tmp_path, proc, 5)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    last = [ln for ln in err.splitlines() if ln.strip()][-1]
+    assert last.startswith("interrupted by SIGTERM: ") and "resume with: " in last, err
+    run = run_folder(tmp_path)
+    assert (run / "checkpoints" / "last" / "COMPLETE").is_file()
+    command = shlex.split(last.split("resume with: ", 1)[1])
+    again = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, env=environ(tmp_path),
+                           capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr
+    assert (run / "checkpoints" / "final.pt").is_file()
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 1500

@@ -15,7 +15,8 @@ python3 -m pip install -q --no-deps --no-build-isolation --ignore-requires-pytho
 python3 -c "import sys, torch, torchrl, tensordict, memrl.envs; print(sys.version.split()[0], torch.__version__, torchrl.__version__, tensordict.__version__, torch.cuda.get_device_name()); import torchrl._torchrl as t; print('torchrl C++ extension loaded')" 2>&1 | tail -3
 nproc; nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 want cuda && { step cuda tests
-timeout "${T_CUDA:-180}" python3 -m pytest -q -p no:cacheprovider tests/test_train_cuda.py tests/test_batched_cuda.py tests/test_frame_store_cuda.py; }
+# every test with cuda in its name (the CUDA-only ones, and the no-CUDA message checks, skipped there)
+timeout "${T_CUDA:-300}" python3 -m pytest -q -p no:cacheprovider -rs -k cuda tests; }
 want batched && { step bench batched on cuda
 timeout "${T_BATCHED:-90}" python3 -m memrl.bench batched batched.device=cuda batched.seconds=2 batched.path_time=0 batched.reference_steps=500 \
   batched.threads=4 hydra.run.dir="$OUT/batched"; }
