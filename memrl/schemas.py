@@ -614,6 +614,11 @@ class StudyConfig:
     train: bool = True
     """False: train nothing; evaluate and report the runs finished so far (an interim report
     of a study that trains in another process; the others are listed as not finished)."""
+    evaluate: str = spec("each", choices=("each", "end", "none"))
+    """When this call evaluates the trained runs on the protocol: ``each`` as each run finishes
+    (a later interim report, ``study.train=false``, then reuses them), ``end`` after every run
+    has trained, ``none`` not at all: train only, no report (e.g. on a GPU machine; the same
+    command with ``study.train=false`` evaluates and reports them later, on any machine)."""
     status: bool = False
     """Only print where each run stands (finished, running, resumable, not started; env steps,
     updates, the checkpoint a resume continues from, evaluated or not): nothing is trained,
@@ -645,6 +650,9 @@ def check_study(cfg: DictConfig) -> None:
     check_fields(StudySchema, cfg)
     check_protocol(cfg.protocol)
     s = cfg.study
+    if s.evaluate == "none" and not s.train:
+        raise config_error("study.evaluate", "none with study.train=false would neither train nor "
+                           "evaluate; give study.evaluate=each to evaluate and report the finished runs")
     for key in ("modes", "seeds", "opponents", "baselines"):
         values = list(s[key])
         if len(set(values)) != len(values):

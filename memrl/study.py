@@ -1,7 +1,8 @@
 """``python -m memrl.study [study.modes=[...]] [study.seeds=[...]] study.train_overrides=[...]``.
 
 Table III from real training, in one folder (``study.dir``): every ([variant,] mode, opponent,
-seed) run under ``runs/``, its evaluation on the protocol (``runs/<run>/eval/``), mode B's stage-1
+seed) run under ``runs/``, its evaluation on the protocol (``runs/<run>/eval/``, made as the run
+finishes: ``study.evaluate``), mode B's stage-1
 weights evaluated too (``stage1/``), the scripted and random baselines (``baselines/``), then
 ``report.md``, ``table3.csv`` and the figures. The same command again resumes: finished runs
 are skipped, killed ones resume from their last checkpoint, finished evaluations are reused,
@@ -157,6 +158,18 @@ def comparison_pairs(grid: list[Cell], labels: list[str]) -> list[list[str]]:
             if f"Default{sfx}" in labels and f"{m}{sfx}" in labels]
 
 
+def trained_only(cfg: DictConfig, folder: Path, outcome: Any, extended: list[str],
+                 start: float) -> StudyResult:
+    """``study.evaluate=none``: what the training did, no evaluation and no report."""
+    result = StudyResult(folder, folder / "report.md", folder / "table3.csv", outcome.skipped,
+                         outcome.trained, outcome.resumed, extended, outcome.failed,
+                         command=command_line(cfg), wall_s=time.perf_counter() - start)
+    log.info("study %s: %d runs skipped, %d trained, %d resumed, %d failed; not evaluated "
+             "(study.evaluate=none): the same command with study.train=false evaluates and reports them",
+             folder, len(result.skipped), len(result.trained), len(result.resumed), len(result.failed))
+    return result
+
+
 def study(cfg: DictConfig) -> StudyResult:
     """Train, evaluate and report the grid of ``cfg.study`` in ``cfg.study.dir`` (resuming).
 
@@ -184,11 +197,28 @@ def study(cfg: DictConfig) -> StudyResult:
         assert cell.cfg is not None
         check_train(cell.cfg)
         check_pool_views(test_pool, cell.cfg.env)  # the test traffic's agents must know these frames
+    settings = ev.EvalSettings(protocol, int(s.workers), int(s.batch), bool(s.progress))
+    tag = settings.tag  # test traffic other than constant: folders of its own, report in test_<tag>/
+    early = ev.Evaluations()  # made as runs finish (study.evaluate=each); the report reuses them
+
+    def evaluate(cell: Cell, into: ev.Evaluations) -> None:
+        ev.evaluate_run(cell.run_dir, settings, into)
+        if s.stage1 and by_label(cell.mode).pretrains:
+            ev.evaluate_stage1(cell.run_dir, folder / "stage1" / ev.suffixed(cell.name, tag), settings, into)
+
+    def evaluate_early(cell: Cell) -> None:
+        try:
+            evaluate(cell, early)
+        except Exception as err:  # the others train on; the evaluation after training tries again
+            log.error("%s: evaluation failed (%s); it is tried again after training", cell.name, err)
+
     if s.train:
         earlier = sources(grid, Path(str(s.extend_from))) if s.extend_from else []
         check_record(folder, cfg)
         extended = extend(earlier, folder / STUDY_JSON)
-        outcome = run_cells(grid, int(s.jobs))
+        outcome = run_cells(grid, int(s.jobs), finished=evaluate_early if s.evaluate == "each" else None)
+        if s.evaluate == "none":
+            return trained_only(cfg, folder, outcome, extended, start)
     else:  # an interim report: the runs finished so far
         extended = []
         outcome = Outcome(skipped=[c.name for c in grid if c.finished()])
@@ -198,14 +228,10 @@ def study(cfg: DictConfig) -> StudyResult:
         check_record(folder, cfg)
     finished = [c for c in grid if c.finished()]
 
-    settings = ev.EvalSettings(protocol, int(s.workers), int(s.batch), bool(s.progress))
-    tag = settings.tag  # test traffic other than constant: folders of its own, report in test_<tag>/
     out_dir = folder / ev.suffixed("test", tag) if tag else folder
     evals = ev.Evaluations()
     for cell in finished:
-        ev.evaluate_run(cell.run_dir, settings, evals)
-        if s.stage1 and by_label(cell.mode).pretrains:
-            ev.evaluate_stage1(cell.run_dir, folder / "stage1" / ev.suffixed(cell.name, tag), settings, evals)
+        evaluate(cell, evals)
     baselines = [folder / "baselines" / ev.suffixed(str(b), tag) for b in s.baselines]
     for name, place in zip(s.baselines, baselines, strict=True):
         ev.evaluate_baseline(str(name), grid[0].cfg.env, place, settings, evals)  # type: ignore[union-attr]
@@ -214,7 +240,8 @@ def study(cfg: DictConfig) -> StudyResult:
     pairs = comparison_pairs(grid, labels)
     folders = [ev.eval_folder(c.run_dir, settings) for c in finished] + baselines
     result = StudyResult(folder, out_dir / "report.md", out_dir / "table3.csv", outcome.skipped,
-                         outcome.trained, outcome.resumed, extended, outcome.failed, evals.made, evals.reused,
+                         outcome.trained, outcome.resumed, extended, outcome.failed,
+                         early.made + evals.made, [r for r in evals.reused if r not in early.made],
                          command=command_line(cfg))
     if not folders:
         raise RuntimeError(f"study {folder}: no run finished and no baseline to report")

@@ -136,7 +136,8 @@ def test_a_pool_agent_trained_on_other_frames_is_refused_in_both_engines(tmp_pat
                         {"bev": {"path_time": 2.0}, "frame_stride": 3})
     unknown = save_qnet(tmp_path / "unknown" / "final.pt", QNetwork(), {})
     here = {"bev": {"path_time": 2.0}, "vehicles_count": 3}
-    for bad, text in ((plain, "bev.path_time 0.0 there, 2.0 here"), (strided, "frame_stride 3 there, 1 here")):
+    for bad, text in ((plain, "bev.path_time 0.0 there, 2.0 here"),
+                      (strided, "frame_stride 3 there, 1 here")):
         config = {"opponent": {"type": "learned", "pool": [str(paths), str(bad)]}, **here}
         with pytest.raises(OpponentPoolError) as info:
             LaneChangeEnv(config=config).reset(seed=0)

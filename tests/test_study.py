@@ -321,11 +321,44 @@ def test_jobs_train_in_spawned_processes_and_a_failing_run_lets_the_others_finis
 
     grid = [Cell("Default", "constant", s, tmp_path / f"Default_constant_s{s}", [], OmegaConf.create({}))
             for s in (0, 1, 2)]
-    out = run_cells(grid, jobs=2, trainer=fake_trainer)
-    assert out.trained == ["Default_constant_s0", "Default_constant_s2"]
+    seen: list[str] = []
+    out = run_cells(grid, jobs=2, trainer=fake_trainer, finished=lambda c: seen.append(c.name))
+    assert out.trained == ["Default_constant_s0", "Default_constant_s2"]  # the grid's order
+    assert sorted(seen) == out.trained  # each finished run, once, in this process; not the failed one
     assert out.failed == {"Default_constant_s1": "RuntimeError: Default_constant_s1 diverged"}
-    again = run_cells(grid, jobs=2, trainer=fake_trainer)
+    again = run_cells(grid, jobs=2, trainer=fake_trainer, finished=lambda c: seen.append(c.name))
     assert again.skipped == out.trained and list(again.failed) == ["Default_constant_s1"]
+    assert len(seen) == 2  # skipped runs are not finished again
+
+
+def test_each_run_is_evaluated_as_it_finishes_and_the_report_reuses_it(tmp_path, compose_cfg):
+    from memrl.study import study
+
+    folder = tmp_path / "s"
+    result = study(compose_cfg("study", [*study_overrides(folder, modes="[Default]"), "study.baselines=[]"]))
+    runs = [folder / "runs" / f"Default_constant_s{seed}" for seed in (0, 1)]
+    # seed 0's evaluation was written before seed 1 began training
+    assert (runs[0] / "eval" / "eval.json").stat().st_mtime_ns < (runs[1] / "config.yaml").stat().st_mtime_ns
+    assert sorted(result.evaluated) == [str(r / "eval") for r in runs] and result.reused == []
+    assert result.report.is_file()
+
+
+def test_evaluate_none_trains_only_and_the_same_command_reports_later(tmp_path, compose_cfg):
+    from memrl.study import study
+
+    folder = tmp_path / "s"
+    args = [*study_overrides(folder, modes="[Default]", seeds="[0]"), "study.baselines=[]"]
+    trained = study(compose_cfg("study", [*args, "study.evaluate=none"]))
+    run = folder / "runs" / "Default_constant_s0"
+    assert trained.trained == ["Default_constant_s0"] and trained.evaluated == []
+    assert (run / "checkpoints" / "final.pt").is_file() and not (run / "eval").exists()
+    assert not (folder / "report.md").exists()
+    with pytest.raises(ConfigError, match="study.evaluate.*neither train nor evaluate") as info:
+        study(compose_cfg("study", [*args, "study.evaluate=none", "study.train=false"]))
+    assert "\n" not in str(info.value)
+    later = study(compose_cfg("study", [*args, "study.train=false"]))
+    assert later.skipped == ["Default_constant_s0"] and later.evaluated == [str(run / "eval")]
+    assert later.report.is_file() and "Default_constant_s0" in later.report.read_text()
 
 
 def test_the_command_line_runs_a_study(tmp_path):

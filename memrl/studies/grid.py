@@ -7,8 +7,8 @@ Hydra's compose API (the user's ``study.train_overrides``, its variant's overrid
 cell's mode, opponent, seed and variant name), in this process
 (``study.jobs=1``) or in ``study.jobs`` spawned processes. Why not Hydra's launcher: every cell
 needs its own decision first (skip a finished run, ``resume=`` a killed one, start a new one),
-and the study goes on to evaluate and report once all cells are done; a sweep of the train app
-decides neither.
+and the study evaluates each run as it finishes (``study.evaluate``) and reports once all
+cells are done; a sweep of the train app decides neither.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import shutil
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -177,9 +177,12 @@ def plan(grid: Sequence[Cell], out: Outcome) -> list[tuple[Cell, bool]]:
 
 
 def run_cells(grid: Sequence[Cell], jobs: int,
-              trainer: Callable[[DictConfig, str, bool], dict[str, Any]] = train_cell) -> Outcome:
+              trainer: Callable[[DictConfig, str, bool], dict[str, Any]] = train_cell,
+              finished: Callable[[Cell], None] | None = None) -> Outcome:
     """Train every unfinished cell (:func:`plan`), ``jobs`` at once; a failing cell is
-    recorded and the others go on."""
+    recorded and the others go on. ``finished`` is called here, in this process, with each
+    cell as it finishes (in the order they finish; the others train on meanwhile). The
+    outcome's lists keep the grid's order."""
     out = Outcome()
     todo = plan(grid, out)
 
@@ -187,6 +190,8 @@ def run_cells(grid: Sequence[Cell], jobs: int,
         if error is None:
             (out.resumed if resume else out.trained).append(cell.name)
             log.info("%s finished", cell.name)
+            if finished is not None:
+                finished(cell)
         else:
             out.failed[cell.name] = _last_line(error)
             log.error("%s failed: %s (log: %s)", cell.name, out.failed[cell.name],
@@ -204,9 +209,13 @@ def run_cells(grid: Sequence[Cell], jobs: int,
     # spawn: a fresh interpreter per worker (no forked torch / OpenMP state)
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
                              initializer=worker_start) as pool, stopped_with_parent(pool):
-        futures: list[tuple[Cell, bool, Future]] = [
-            (cell, resume, pool.submit(trainer, cell.cfg, str(cell.run_dir), resume))  # type: ignore[arg-type]
-            for cell, resume in todo]
-        for cell, resume, fut in futures:
-            done(cell, resume, fut.exception())
+        futures: dict[Future, tuple[Cell, bool]] = {
+            pool.submit(trainer, cell.cfg, str(cell.run_dir), resume): (cell, resume)  # type: ignore[arg-type]
+            for cell, resume in todo}
+        for fut in as_completed(futures):
+            done(*futures[fut], fut.exception())
+    order = {c.name: i for i, c in enumerate(grid)}
+    out.trained.sort(key=order.__getitem__)
+    out.resumed.sort(key=order.__getitem__)
+    out.failed = {k: out.failed[k] for k in sorted(out.failed, key=order.__getitem__)}
     return out
