@@ -137,9 +137,13 @@ def test_signal_during_a_study_keeps_its_runs_and_the_printed_command_finishes_i
         assert proc.poll() is None and time.monotonic() < end, proc.communicate()
         time.sleep(0.2)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=300)
+    out, err = proc.communicate(timeout=300)
     assert proc.returncode == 143, err
     assert "Traceback" not in err and "leaked semaphore" not in err, err
+    assert "Traceback" not in out and "failed" not in out, out  # a stop asked for is no failure
+    log = (run / "train.log").read_text()
+    assert "Traceback" not in log and "failed" not in log
+    assert ": stopped by SIGTERM; its checkpoint is kept" in log
     last = [ln for ln in err.splitlines() if ln.strip()][-1]
     assert last.startswith("interrupted by SIGTERM: ") and "continue with: " in last, err
     assert (run / "checkpoints" / "last" / "COMPLETE").is_file() and not (run / "summary.json").exists()

@@ -25,6 +25,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from memrl.modes import by_label
+from memrl.signals import Interrupted
 from memrl.workers import stopped_with_parent, worker_start
 
 log = logging.getLogger(__name__)
@@ -146,6 +147,9 @@ def train_cell(cfg: DictConfig, run_dir: str, resume: bool) -> dict[str, Any]:
     root.setLevel(min(level, logging.INFO) if level else logging.INFO)
     try:
         return dataclasses.asdict(train(cfg, path))
+    except (Interrupted, KeyboardInterrupt) as stop:  # asked for: no failure, no traceback
+        log.info("training %s: %s; its checkpoint is kept", path, stop or "stopped by Ctrl-C")
+        raise
     except BaseException:
         log.exception("training %s failed", path)  # the traceback into the run's train.log
         raise
