@@ -33,7 +33,7 @@ from memrl.modes import MODES, by_label
 from memrl.schemas import check_study
 
 if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
-    from memrl.studies.grid import Cell
+    from memrl.studies.grid import Cell, Outcome
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +158,7 @@ def comparison_pairs(grid: list[Cell], labels: list[str]) -> list[list[str]]:
             if f"Default{sfx}" in labels and f"{m}{sfx}" in labels]
 
 
-def trained_only(cfg: DictConfig, folder: Path, outcome: Any, extended: list[str],
+def trained_only(cfg: DictConfig, folder: Path, outcome: Outcome, extended: list[str],
                  start: float) -> StudyResult:
     """``study.evaluate=none``: what the training did, no evaluation and no report."""
     result = StudyResult(folder, folder / "report.md", folder / "table3.csv", outcome.skipped,
