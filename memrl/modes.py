@@ -46,6 +46,8 @@ class StageSpec:
     """Epsilon schedule (start, end, decay env steps) of an online stage."""
     lr: Callable[[Cfg], float | None] = lambda cfg: None
     """Its own Adam learning rate (None: the optimizer's, ``agent.lr`` at first)."""
+    n_step: Callable[[Cfg], int | None] = lambda cfg: None
+    """Steps summed per sampled transition in its buffer (None: ``agent.n_step``)."""
     fresh_optimizer: bool = False
     """Starts a new Adam at ``agent.lr`` (the weights carry over; the target network is
     synced to them)."""
@@ -279,6 +281,8 @@ def _check_b(cfg: Cfg) -> None:
     _need(0 <= s2.demo_fraction < 1, "mode.stage2.demo_fraction",
           f"must be in [0, 1), got {s2.demo_fraction}")
     _need(s2.margin_weight >= 0, "mode.stage2.margin_weight", f"must be >= 0, got {s2.margin_weight}")
+    _need(s2.lr is None or s2.lr > 0, "mode.stage2.lr", f"must be > 0 or null, got {s2.lr}")
+    _need(s2.n_step is None or s2.n_step >= 1, "mode.stage2.n_step", f"must be >= 1 or null, got {s2.n_step}")
 
 
 @dataclass
@@ -358,6 +362,14 @@ class Stage2Config:
     Acts only where ``demo_fraction > 0`` (with 0 no batch holds a demo). With both (0.1,
     3) B kept most of what stage 1 learned: at 20,000 env steps, non-goal survival / goal 77 / 73
     against 23 / 43 without (docs/results/issue20)."""
+    lr: float | None = None
+    """Adam learning rate of stage 2 (None: ``agent.lr``; stage 1 has its own, ``stage1.lr``).
+    A smaller rate changes the stage-1 weights less per update: at 6.25e-5 with
+    ``n_step=3`` stage 2 ended above its stage 1 on 3 of 3 seeds, at 2.5e-4 on 1 of 3; with
+    n = 1 on 2 of 3 (docs/results/issue30/screens.md, sections 23-24)."""
+    n_step: int | None = None
+    """Steps of reward summed per sampled transition in stage 2's buffer, agent data and demos
+    alike (None: ``agent.n_step``; stage 1 reads ``agent.n_step``)."""
 
 
 @dataclass
@@ -439,6 +451,7 @@ register_mode(ModeSpec(
                terms=lambda cfg: _margin(cfg.mode.stage1.margin_weight, cfg.mode.stage1.margin),
                lr=lambda cfg: cfg.mode.stage1.lr),
      StageSpec("B2", demo_share=lambda cfg: cfg.mode.stage2.demo_fraction, fresh_optimizer=True,
+               lr=lambda cfg: cfg.mode.stage2.lr, n_step=lambda cfg: cfg.mode.stage2.n_step,
                terms=lambda cfg: _margin(cfg.mode.stage2.margin_weight, cfg.mode.stage1.margin),
                exploration=lambda cfg: (cfg.mode.stage2.eps_start, cfg.mode.stage2.eps_end,
                                         cfg.mode.stage2.eps_decay_frames))),

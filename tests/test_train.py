@@ -70,6 +70,31 @@ def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
     assert float(trainer.stage.explore.eps) == pytest.approx(cfg.mode.stage2.eps_start)
 
 
+def test_mode_b_stage2_has_its_own_rate_and_n_step_when_set(compose_cfg, tmp_path, demos):
+    """mode.stage2.lr / n_step: stage 2's fresh Adam runs at its own rate and its buffer (demo
+    and agent parts) sums its own steps; stage 1 keeps its own rate and agent.n_step (1)."""
+    from memrl.data.nstep import STEPS_KEY
+
+    cfg = compose_cfg("train", tiny("B") + ["mode.stage1.criterion=max_updates",
+                                       "mode.stage1.max_updates=4", "mode.stage1.lr=0.003",
+                                       "mode.stage2.lr=0.0007", "mode.stage2.n_step=3"])
+    trainer = Trainer(cfg, tmp_path, demos)
+    trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
+    assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {0.003}
+    assert STEPS_KEY not in trainer.stage.buffer.sample().keys()  # stage 1: 1-step
+    trainer.run_stage1()
+    assert trainer.counters.stage == "B2"
+    assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {0.0007}
+    assert not trainer.learner.optimizer.state
+    buffer = trainer.stage.buffer
+    assert buffer.offline_buffer.storage.n_step == buffer.online_buffer.storage.n_step == 3
+    assert STEPS_KEY in buffer.offline_buffer.sample(4).keys()
+    for bad, line in ((["mode.stage2.lr=0"], "config 'mode.stage2.lr': must be > 0 or null, got 0"),
+                      (["mode.stage2.n_step=0"], "config 'mode.stage2.n_step': must be >= 1 or null, got 0")):
+        with pytest.raises(UserError, match=re.escape(line)):
+            train(compose_cfg("train", tiny("B") + bad), tmp_path / "bad")
+
+
 def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, demos):
     cfg = compose_cfg("train", tiny("B") + ["mode.stage1.criterion=max_updates",
                                        "mode.stage1.max_updates=6"])

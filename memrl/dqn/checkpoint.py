@@ -38,7 +38,7 @@ LEGACY_VALUES: dict[str, Any] = {
             "frame_stride": 1, "shaping": {"weight": 0.0, "horizon": 3.0, "gamma": 0.95}},
     "mode": {"stage1": {"lr": None, "drive_episodes": 0, "drive_seed": 0, "drive_target": 0.9,
                         "keep_best": True, "init": None},
-             "stage2": {"demo_fraction": 0.0, "margin_weight": 0.0},
+             "stage2": {"demo_fraction": 0.0, "margin_weight": 0.0, "lr": None, "n_step": None},
              "margin_weight": 0.0,
              "example": LEGACY_RECIPE},
 }
