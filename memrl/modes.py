@@ -365,7 +365,7 @@ class Stage2Config:
     lr: float | None = None
     """Adam learning rate of stage 2 (None: ``agent.lr``; stage 1 has its own, ``stage1.lr``).
     A smaller rate changes the stage-1 weights less per update: at 6.25e-5 with
-    ``n_step=3`` stage 2 ended above its stage 1 on 3 of 3 seeds, at 2.5e-4 on 1 of 3; with
+    ``n_step=3`` stage 2 ended above its stage 1 on 3 of 5 seeds, at 2.5e-4 on 1 of 5; with
     n = 1 on 2 of 3 (docs/results/issue30/screens.md, sections 23-24)."""
     n_step: int | None = None
     """Steps of reward summed per sampled transition in stage 2's buffer, agent data and demos
