@@ -275,6 +275,41 @@ def test_example_dataset_is_recorded_once_then_reused(tmp_path, monkeypatch):
     assert load_demos(path, env).shape == (60,)
 
 
+def test_example_dataset_asked_for_twice_at_once_is_recorded_once(tmp_path, monkeypatch):
+    """A study's parallel jobs on an empty cache: the second caller waits on the first one's
+    lock and loads its dataset instead of recording it again beside it."""
+    import threading
+    import time
+
+    import memrl.data.recording as recording
+
+    env = {"duration": 60}
+    real, calls, inside = recording.record_recipe, [], threading.Event()
+
+    def slow_record(*args, **kwargs):
+        calls.append(threading.current_thread().name)
+        inside.set()
+        time.sleep(0.5)  # the second caller asks while the first is still recording
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recording, "record_recipe", slow_record)
+    paths = {}
+
+    def ask(name):
+        paths[name] = ensure_example_demos(env, tmp_path, ONE_EPISODE)
+
+    first = threading.Thread(target=ask, args=("first",), name="first")
+    second = threading.Thread(target=ask, args=("second",), name="second")
+    first.start()
+    assert inside.wait(timeout=60)
+    second.start()
+    first.join()
+    second.join()
+    assert calls == ["first"]
+    assert paths["first"] == paths["second"] == example_demos_path(env, tmp_path, ONE_EPISODE)
+    assert load_demos(paths["second"], env).shape == (60,)
+
+
 def test_default_recipe_shows_lane_changes_from_non_goal_starts_with_recoveries(tmp_path):
     """The prior knowledge modes A and B use by default (4 of its 240 episodes here): every
     kept episode starts outside the target lane, changes lanes (steering actions, target

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from filelock import FileLock
 from tensordict import TensorDict
 from tqdm import tqdm
 
@@ -318,9 +319,19 @@ def ensure_example_demos(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | N
     :class:`DemoRecipe`) for ``env_cfg``; records it if needed.
 
     Cached under ``data_dir`` by env-config hash and recipe hash. A cached dataset that fails
-    :func:`load_demos` is recorded again.
+    :func:`load_demos` is recorded again. Processes that ask for the same dataset at once (a
+    study's parallel jobs on an empty cache) record it once: the others wait on a file lock
+    beside it, then load what the first one saved.
     """
     path = example_demos_path(env_cfg, data_dir, recipe)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(path.parent / f".{path.name}.lock"):
+        return _cached_or_recorded(path, env_cfg, recipe, overwrite=overwrite, progress=progress)
+
+
+def _cached_or_recorded(path: Path, env_cfg: EnvCfg, recipe: Any, *, overwrite: bool,
+                        progress: bool) -> Path:
+    """:func:`ensure_example_demos`'s work, under its lock."""
     if path.exists() and not overwrite:
         try:
             load_demos(path, env_cfg)
