@@ -366,7 +366,9 @@ class Stage2Config:
     """Adam learning rate of stage 2 (None: ``agent.lr``; stage 1 has its own, ``stage1.lr``).
     A smaller rate changes the stage-1 weights less per update: at 6.25e-5 with
     ``n_step=3`` stage 2 ended above its stage 1 on 3 of 5 seeds, at 2.5e-4 on 1 of 5; with
-    n = 1 on 2 of 3 (docs/results/issue30/screens.md, sections 23-24)."""
+    n = 1 on 2 of 3 (docs/results/issue30/screens.md, sections 23-24). Those stage 1s were
+    trained with n = 3; from the default stage 1 (n = 1) the same recipe ended above it on 1
+    of 3 seeds (section 26), so neither is a default."""
     n_step: int | None = None
     """Steps of reward summed per sampled transition in stage 2's buffer, agent data and demos
     alike (None: ``agent.n_step``; stage 1 reads ``agent.n_step``)."""
