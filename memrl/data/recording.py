@@ -325,23 +325,17 @@ def ensure_example_demos(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | N
     """
     path = example_demos_path(env_cfg, data_dir, recipe)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with FileLock(path.parent / f".{path.name}.lock"):
-        return _cached_or_recorded(path, env_cfg, recipe, overwrite=overwrite, progress=progress)
-
-
-def _cached_or_recorded(path: Path, env_cfg: EnvCfg, recipe: Any, *, overwrite: bool,
-                        progress: bool) -> Path:
-    """:func:`ensure_example_demos`'s work, under its lock."""
-    if path.exists() and not overwrite:
-        try:
-            load_demos(path, env_cfg)
-            return path
-        except DemoDatasetError as e:
-            log.warning("cached example dataset is unusable, recording it again: %s", e)
-    r = recipe_values(recipe)
-    log.info("recording the example dataset (%d scripted episodes) into %s", r["episodes"], path)
-    saved, rec = record_recipe(env_cfg, r, path, overwrite=True, progress=progress,
-                               extra={"example": True})
+    with FileLock(path.parent / f".{path.name}.lock"):  # filelock: an OS lock, gone with its process
+        if path.exists() and not overwrite:
+            try:
+                load_demos(path, env_cfg)
+                return path
+            except DemoDatasetError as e:
+                log.warning("cached example dataset is unusable, recording it again: %s", e)
+        r = recipe_values(recipe)
+        log.info("recording the example dataset (%d scripted episodes) into %s", r["episodes"], path)
+        saved, rec = record_recipe(env_cfg, r, path, overwrite=True, progress=progress,
+                                   extra={"example": True})
     if saved is None:
         raise RuntimeError(f"the scripted driver kept no stable episode out of {r['episodes']}; "
                            f"recorded: {rec.stats()['recorded']}")
