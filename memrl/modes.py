@@ -48,6 +48,8 @@ class StageSpec:
     """Its own Adam learning rate (None: the optimizer's, ``agent.lr`` at first)."""
     n_step: Callable[[Cfg], int | None] = lambda cfg: None
     """Steps summed per sampled transition in its buffer (None: ``agent.n_step``)."""
+    updates_per_round: Callable[[Cfg], int | None] = lambda cfg: None
+    """Gradient updates per round of an online stage (None: ``agent.updates_per_round``)."""
     fresh_optimizer: bool = False
     """Starts a new Adam at ``agent.lr`` (the weights carry over; the target network is
     synced to them)."""
@@ -283,6 +285,8 @@ def _check_b(cfg: Cfg) -> None:
     _need(s2.margin_weight >= 0, "mode.stage2.margin_weight", f"must be >= 0, got {s2.margin_weight}")
     _need(s2.lr is None or s2.lr > 0, "mode.stage2.lr", f"must be > 0 or null, got {s2.lr}")
     _need(s2.n_step is None or s2.n_step >= 1, "mode.stage2.n_step", f"must be >= 1 or null, got {s2.n_step}")
+    _need(s2.updates_per_round is None or s2.updates_per_round >= 1, "mode.stage2.updates_per_round",
+          f"must be >= 1 or null, got {s2.updates_per_round}")
 
 
 @dataclass
@@ -372,6 +376,10 @@ class Stage2Config:
     n_step: int | None = None
     """Steps of reward summed per sampled transition in stage 2's buffer, agent data and demos
     alike (None: ``agent.n_step``; stage 1 reads ``agent.n_step``)."""
+    updates_per_round: int | None = None
+    """Gradient updates per round (every ``agent.train_every`` env steps) in stage 2: its replay
+    ratio (None: ``agent.updates_per_round``). The target network is still copied every
+    ``agent.target_update_interval`` updates, so more often per env step."""
 
 
 @dataclass
@@ -454,6 +462,7 @@ register_mode(ModeSpec(
                lr=lambda cfg: cfg.mode.stage1.lr),
      StageSpec("B2", demo_share=lambda cfg: cfg.mode.stage2.demo_fraction, fresh_optimizer=True,
                lr=lambda cfg: cfg.mode.stage2.lr, n_step=lambda cfg: cfg.mode.stage2.n_step,
+               updates_per_round=lambda cfg: cfg.mode.stage2.updates_per_round,
                terms=lambda cfg: _margin(cfg.mode.stage2.margin_weight, cfg.mode.stage1.margin),
                exploration=lambda cfg: (cfg.mode.stage2.eps_start, cfg.mode.stage2.eps_end,
                                         cfg.mode.stage2.eps_decay_frames))),

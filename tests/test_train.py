@@ -95,6 +95,25 @@ def test_mode_b_stage2_has_its_own_rate_and_n_step_when_set(compose_cfg, tmp_pat
             train(compose_cfg("train", tiny("B") + bad), tmp_path / "bad")
 
 
+def test_updates_per_round_sets_the_replay_ratio_and_stage2_can_have_its_own(compose_cfg, tmp_path, demos):
+    """agent.updates_per_round: that many updates per due round in every online stage;
+    mode.stage2.updates_per_round: stage 2's own (stage 1's update count is its stop rule's)."""
+    from memrl.dqn.schedule import UpdateSchedule
+
+    rounds = UpdateSchedule(4, 20).rounds_due  # TINY's train_every and warmup_frames
+    two = train(compose_cfg("train", tiny() + ["agent.updates_per_round=2"]), tmp_path / "d2", demos=demos)
+    assert two.frames > 20 and two.updates == 2 * rounds(two.frames)
+    b = tiny("B") + ["mode.stage1.criterion=max_updates"]
+    own = train(compose_cfg("train", b + ["mode.stage2.updates_per_round=3"]), tmp_path / "b3", demos=demos)
+    assert own.stage1["updates"] == 12  # the stop rule's, not 3x
+    assert own.updates == own.stage1["updates"] + 3 * rounds(own.frames)
+    both = train(compose_cfg("train", b + ["agent.updates_per_round=2"]), tmp_path / "b2", demos=demos)
+    assert both.updates == both.stage1["updates"] + 2 * rounds(both.frames)  # null: agent's
+    with pytest.raises(UserError, match=re.escape(
+            "config 'mode.stage2.updates_per_round': must be >= 1 or null, got 0")):
+        train(compose_cfg("train", b + ["mode.stage2.updates_per_round=0"]), tmp_path / "bad", demos=demos)
+
+
 def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, demos):
     cfg = compose_cfg("train", tiny("B") + ["mode.stage1.criterion=max_updates",
                                        "mode.stage1.max_updates=6"])
@@ -134,7 +153,7 @@ def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg
                     tmp_path / "run2", demos=demos)
     from memrl.dqn.schedule import UpdateSchedule
 
-    rounds = UpdateSchedule(4, 20, 1).rounds_due  # TINY's train_every and warmup_frames
+    rounds = UpdateSchedule(4, 20).rounds_due  # TINY's train_every and warmup_frames
     assert source.updates == src_updates + rounds(source.frames)
     assert summary.updates == rounds(summary.frames)  # stage-2 updates only
     # another reward is allowed (stage 2 fits its Q-values to its own run's reward), logged

@@ -114,8 +114,7 @@ class Trainer:
         self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=cfg.network)
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),
                                   int(cfg.agent.threads))
-        self.schedule = UpdateSchedule(int(cfg.agent.train_every), int(cfg.agent.warmup_frames),
-                                       int(cfg.agent.updates_per_round))
+        self.schedule = UpdateSchedule(int(cfg.agent.train_every), int(cfg.agent.warmup_frames))
         self.budget = Budget(cfg.total_frames, cfg.total_episodes)
         self.self_play = SelfPlayPool(int(cfg.self_play_every or 0),
                                       self.collector.learned_controller(), out_dir, cfg.env)
@@ -199,7 +198,7 @@ class Trainer:
         c = self.counters
         due = self.schedule.rounds_due(c.frames) - c.rounds
         c.rounds += due
-        return [self.stage.buffer.sample() for _ in range(due * self.schedule.updates_per_round)]
+        return [self.stage.buffer.sample() for _ in range(due * self.stage.updates_per_round)]
 
     def _collect(self) -> Steps:
         """Env steps until the next round is due (or the frame budget ends; N = 1: or the

@@ -8,15 +8,15 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class UpdateSchedule:
-    """One round of ``updates_per_round`` updates every ``train_every`` env steps (summed over
-    the N envs), from ``warmup_frames`` on: round k is due once the env steps reach the k-th
-    multiple of ``train_every`` that is >= ``warmup_frames``. With N = 1 that is one round at
-    every such env step; with N envs a batched step of N env steps makes N / train_every rounds
-    due, so the replay ratio (updates per env step) does not depend on N."""
+    """One round of updates every ``train_every`` env steps (summed over the N envs), from
+    ``warmup_frames`` on: round k is due once the env steps reach the k-th multiple of
+    ``train_every`` that is >= ``warmup_frames``. With N = 1 that is one round at every such env
+    step; with N envs a batched step of N env steps makes N / train_every rounds due, so the
+    replay ratio (updates per env step) does not depend on N. A round's updates: the stage's
+    (``agent.updates_per_round`` unless its spec sets its own, :mod:`memrl.dqn.builder`)."""
 
     train_every: int
     warmup_frames: int
-    updates_per_round: int = 1
 
     def _first(self) -> int:
         """Index (in multiples of ``train_every``) of the first due round's env step."""
