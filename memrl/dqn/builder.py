@@ -40,7 +40,7 @@ class Stage:
     held_out: TensorDictBase | None = None
     """Offline stage: demos kept out of its buffer to measure agreement."""
     updates_per_round: int = 1
-    """Gradient updates per round (online stage)."""
+    """Gradient updates per round (online stage; an offline stage's count is its stop rule's)."""
 
     @property
     def name(self) -> str:
@@ -83,8 +83,8 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
                                       keep_order=nstep["n_step"] > 1)
         return Stage(spec, demo_buffer(train, batch, compact=compact, device=device, **nstep), None, terms,
                      lr, held_out.to(device))
-    rounds = spec.updates_per_round(cfg)
-    updates = int(a.updates_per_round if rounds is None else rounds)
+    per_round = spec.updates_per_round(cfg)
+    per_round = int(a.updates_per_round if per_round is None else per_round)
     explore = make_exploration(*spec.exploration(cfg), kind=str(a.exploration), num_envs=num_envs,
                                **{k: a[k] for k in EXPLORATION_OPTIONS})
     explore.to(device)
@@ -94,4 +94,4 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
                                            **store, **nstep)
     else:
         buffer = agent_buffer(capacity, batch, **store, **nstep)
-    return Stage(spec, buffer, explore, terms, lr, updates_per_round=updates)
+    return Stage(spec, buffer, explore, terms, lr, updates_per_round=per_round)
