@@ -92,12 +92,12 @@ def test_an_unknown_exploration_names_the_key(compose_cfg, tmp_path):
         train(cfg, tmp_path)
 
 
-@pytest.mark.parametrize("kind", ["ez_greedy", "boltzmann", "speed_only"])
-def test_each_option_trains_and_ez_greedy_resumes_exactly(compose_cfg, tmp_path, kind):
+@pytest.mark.parametrize("kind", ["ez_greedy", "ez_speed", "boltzmann", "speed_only"])
+def test_each_option_trains_and_the_repeats_resume_exactly(compose_cfg, tmp_path, kind):
     extra = ["env.num_envs=4", "total_episodes=8", "checkpoint_every=3", f"agent.exploration={kind}"]
     full = train(compose_cfg("train", TINY + extra), tmp_path / "full")
     assert full.episodes >= 8 and full.updates > 0
-    if kind != "ez_greedy":
+    if kind not in ("ez_greedy", "ez_speed"):
         return
     short = train(compose_cfg("train", TINY + extra[:1] + ["total_episodes=4"] + extra[2:]),
                   tmp_path / "cut")
@@ -110,3 +110,32 @@ def test_each_option_trains_and_ez_greedy_resumes_exactly(compose_cfg, tmp_path,
             return list(csv.DictReader(f))
 
     assert rows("cut") == rows("full")
+
+
+def test_ez_speed_holds_one_speed_change_and_takes_the_curvature_change_from_the_greedy_action():
+    torch.manual_seed(0)
+    n = 6
+    explore = make_exploration(1.0, 1.0, 10, kind="ez_speed", num_envs=n, ez_max_duration=4)
+    held, starts = [], 0
+    for t in range(60):
+        greedy = torch.randint(9, (n,))  # a different greedy action at every step
+        before = explore.remaining.clone()
+        action = explore(TensorDict({"action": greedy.clone(),
+                                     "step_count": torch.full((n, 1), t + 1)}, [n]))["action"]
+        starts += int((before == 0).sum())
+        # with eps = 1 every env is mid-repeat: the held speed index, the greedy curvature index
+        assert torch.equal(action // 3, explore.repeat)
+        assert torch.equal(action % 3, greedy % 3)
+        held.append(explore.repeat.clone())
+        assert bool((before <= 3).all())  # at most max_duration - 1 left after a start
+    # the speed index changes only where a repeat started, so runs have drawn lengths
+    changes = sum(int((a != b).sum()) for a, b in zip(held, held[1:]))
+    assert 0 < changes <= starts
+    assert set(torch.cat(held).tolist()) == {0, 1, 2}
+
+
+def test_ez_speed_at_epsilon_zero_is_greedy():
+    explore = make_exploration(1.0, 0.0, 1, kind="ez_speed", num_envs=3)
+    explore.step(1)
+    greedy = torch.tensor([0, 4, 8])
+    assert explore(TensorDict({"action": greedy.clone()}, [3]))["action"].tolist() == [0, 4, 8]

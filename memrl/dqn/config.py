@@ -15,7 +15,7 @@ from memrl.errors import UserError
 from memrl.modes import Stage1Config, Stage2Config, mode_of  # noqa: F401  (the mode B schemas)
 
 PRECISIONS = ("auto", "float32", "bfloat16")
-EXPLORATIONS = ("epsilon", "ez_greedy", "speed_only", "boltzmann")  # memrl/dqn/exploration.py
+EXPLORATIONS = ("epsilon", "ez_greedy", "ez_speed", "speed_only", "boltzmann")  # memrl/dqn/exploration.py
 
 
 @dataclass
@@ -55,11 +55,12 @@ class AgentConfig:
     exploration: str = "epsilon"
     """How the acting policy explores (:mod:`memrl.dqn.exploration`): ``epsilon`` (the paper's
     epsilon-greedy), ``ez_greedy`` (a random action repeated for a zeta-distributed duration),
-    ``speed_only`` (random actions change only the speed) or ``boltzmann`` (softmax over Q)."""
+    ``ez_speed`` (a random speed change held so, the curvature change greedy), ``speed_only``
+    (random actions change only the speed) or ``boltzmann`` (softmax over Q)."""
     ez_mu: float = 2.0
-    """``ez_greedy``: exponent of the duration distribution P(n) ~ n^-mu."""
+    """``ez_greedy`` / ``ez_speed``: exponent of the duration distribution P(n) ~ n^-mu."""
     ez_max_duration: int = 50
-    """``ez_greedy``: longest repeat [action steps]."""
+    """``ez_greedy`` / ``ez_speed``: longest repeat [action steps]."""
     temperature_start: float = 1.0
     """``boltzmann``: initial temperature [Q units], annealed like epsilon over eps_decay_frames."""
     temperature_end: float = 0.05

@@ -8,10 +8,15 @@
   next greedy ones and rarely show the agent where a sustained change leads.
 - ``speed_only``: epsilon-greedy whose random actions keep the curvature (only speed changes):
   a random curvature step that the policy does not undo drives the car into the road edge.
+- ``ez_speed``: ``ez_greedy`` on the speed change alone: an env that starts exploring holds one
+  random speed change (slower, keep, faster) for a zeta-distributed duration while the greedy
+  action keeps choosing the curvature change. A repeated random curvature change runs the car
+  off the road (``ez_greedy``), and single random speed steps are undone by the next greedy ones,
+  so neither shows the agent what seconds of braking behind a slower car lead to.
 - ``boltzmann``: actions drawn from softmax(Q / T), T annealed linearly from
   ``temperature_start`` to ``temperature_end`` over ``eps_decay_frames`` env steps.
 
-Every module keeps its schedule (and ``ez_greedy`` its per-env repeats) in buffers, so the
+Every module keeps its schedule (and ``ez_greedy`` / ``ez_speed`` their per-env repeats) in buffers, so the
 trainer's checkpoints resume it exactly.
 """
 
@@ -25,7 +30,7 @@ from torchrl.data import Categorical, Composite
 from torchrl.modules import EGreedyModule
 
 from memrl.dqn.config import EXPLORATIONS, AgentConfig
-from memrl.envs.vehicles import ACTIONS, N_ACTIONS
+from memrl.envs.vehicles import ACTIONS, CURVATURE_CHANGES, N_ACTIONS, SPEED_CHANGES
 
 KEEP_CURVATURE = torch.tensor([i for i, (_, dk) in enumerate(ACTIONS) if dk == 0])
 """Action indices that leave the curvature as it is (speed -, =, +)."""
@@ -91,13 +96,30 @@ class EzGreedy(AlwaysExploring):
             self.remaining.masked_fill_(step_count.reshape(n) == 0, 0)
         start = (self.remaining == 0) & (torch.rand(n, device=self.eps.device) < self.eps)
         length = torch.multinomial(self.durations, n, replacement=True) + 1
-        self.repeat.copy_(torch.where(start, torch.randint(N_ACTIONS, (n,), device=flat.device),
+        self.repeat.copy_(torch.where(start, torch.randint(self.choices, (n,), device=flat.device),
                                       self.repeat))
         self.remaining.copy_(torch.where(start, length, self.remaining))
-        out = torch.where(self.remaining > 0, self.repeat, flat)
+        out = torch.where(self.remaining > 0, self._held(flat), flat)
         self.remaining.sub_(1).clamp_(min=0)
         tensordict.set(self.action_key, out.reshape(greedy.shape))
         return tensordict
+
+    choices = N_ACTIONS
+    """How many values a repeat draws from (here: the actions)."""
+
+    def _held(self, greedy: torch.Tensor) -> torch.Tensor:
+        """The action of an env mid-repeat, given the greedy actions ``[N]``."""
+        return self.repeat
+
+
+class EzSpeed(EzGreedy):
+    """``ez_greedy`` on the speed change alone: ``repeat`` holds a speed index (0 slower, 1 keep,
+    2 faster) and the curvature change stays the greedy action's (index = 3 speed + curvature)."""
+
+    choices = len(SPEED_CHANGES)
+
+    def _held(self, greedy: torch.Tensor) -> torch.Tensor:
+        return self.repeat * len(CURVATURE_CHANGES) + greedy % len(CURVATURE_CHANGES)
 
 
 class Boltzmann(AlwaysExploring):
@@ -123,7 +145,7 @@ def make_exploration(eps_start: float, eps_end: float, decay_frames: int, kind: 
         eps_start, eps_end, decay_frames: the linear schedule of epsilon (``boltzmann``: of the
             temperature, from ``temperature_start`` to ``temperature_end``).
         kind: one of :data:`EXPLORATIONS`.
-        num_envs: envs acting together (``ez_greedy`` keeps one repeat per env).
+        num_envs: envs acting together (``ez_greedy`` / ``ez_speed`` keep one repeat per env).
         ez_mu, ez_max_duration, temperature_start, temperature_end: as ``agent.*``
             (:class:`~memrl.dqn.config.AgentConfig`, whose defaults these are).
     """
@@ -133,10 +155,11 @@ def make_exploration(eps_start: float, eps_end: float, decay_frames: int, kind: 
     if kind == "speed_only":
         return SpeedOnlyExploring(spec, eps_init=eps_start, eps_end=eps_end,
                                   annealing_num_steps=decay_frames)
-    if kind == "ez_greedy":
-        return EzGreedy(spec, eps_init=eps_start, eps_end=eps_end, annealing_num_steps=decay_frames,
-                        num_envs=num_envs, mu=float(ez_mu),
-                        max_duration=int(ez_max_duration))
+    if kind in ("ez_greedy", "ez_speed"):
+        repeats = EzGreedy if kind == "ez_greedy" else EzSpeed
+        return repeats(spec, eps_init=eps_start, eps_end=eps_end, annealing_num_steps=decay_frames,
+                       num_envs=num_envs, mu=float(ez_mu),
+                       max_duration=int(ez_max_duration))
     if kind == "boltzmann":
         return Boltzmann(spec, eps_init=float(temperature_start),
                          eps_end=float(temperature_end),
