@@ -16,8 +16,8 @@
 - ``boltzmann``: actions drawn from softmax(Q / T), T annealed linearly from
   ``temperature_start`` to ``temperature_end`` over ``eps_decay_frames`` env steps.
 
-Every module keeps its schedule (and ``ez_greedy`` / ``ez_speed`` their per-env repeats) in buffers, so the
-trainer's checkpoints resume it exactly.
+Every module keeps its schedule (and ``ez_greedy`` / ``ez_speed`` their per-env repeats) in
+buffers, so the trainer's checkpoints resume it exactly.
 """
 
 from __future__ import annotations
