@@ -126,6 +126,8 @@ def test_ez_speed_holds_one_speed_change_and_takes_the_curvature_change_from_the
         # with eps = 1 every env is mid-repeat: the held speed index, the greedy curvature index
         assert torch.equal(action // 3, explore.repeat)
         assert torch.equal(action % 3, greedy % 3)
+        if held:  # an env mid-hold (before > 0) keeps its speed index
+            assert torch.equal(explore.repeat[before > 0], held[-1][before > 0])
         held.append(explore.repeat.clone())
         assert bool((before <= 3).all())  # at most max_duration - 1 left after a start
     # the speed index changes only where a repeat started, so runs have drawn lengths

@@ -78,6 +78,9 @@ class EzGreedy(AlwaysExploring):
     A new episode (``step_count`` 0 in the tensordict) ends any repeat under way.
     """
 
+    choices = N_ACTIONS
+    """How many values a repeat draws from (here: the actions)."""
+
     def __init__(self, *args: Any, num_envs: int = 1, mu: float = 2.0, max_duration: int = 50,
                  **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -103,9 +106,6 @@ class EzGreedy(AlwaysExploring):
         self.remaining.sub_(1).clamp_(min=0)
         tensordict.set(self.action_key, out.reshape(greedy.shape))
         return tensordict
-
-    choices = N_ACTIONS
-    """How many values a repeat draws from (here: the actions)."""
 
     def _held(self, greedy: torch.Tensor) -> torch.Tensor:
         """The action of an env mid-repeat, given the greedy actions ``[N]``."""
