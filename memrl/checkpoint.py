@@ -70,7 +70,11 @@ def qnet_from(file: Path, arch: dict[str, Any], weights: dict[str, Any],
 
 def _build(file: Path, arch: dict[str, Any]) -> torch.nn.Module:
     try:
-        return build_qnet(arch)
+        # Its initial weights are overwritten: drawing them from the global generator would
+        # shift a run's own stream (learner init, replay sampling) by the nets it loads, e.g.
+        # the opponent pool's, so a mixed-traffic run would start from other weights.
+        with torch.random.fork_rng(devices=[]):
+            return build_qnet(arch)
     except Exception as err:  # an unknown class or argument (Hydra's InstantiationException...)
         raise CheckpointError(f"{file}: cannot build its network {arch.get('_target_')!r} "
                               f"({str(err).splitlines()[0]})") from err
@@ -88,7 +92,9 @@ def qnet_weights(state: dict[str, Any], names: set[str] | None = None,
     """The Q-network's weights inside a TorchRL ``DQNLoss`` state dict (the online network's,
     keys under ``prefix``; e.g. ``value_network_params.module.0.module.head.1.weight`` ->
     ``head.1.weight``); ``names``: the bare network's parameter names (None: Table I's)."""
-    names = set(build_qnet(TABLE1).state_dict()) if names is None else names
+    if names is None:
+        with torch.random.fork_rng(devices=[]):  # only the names are wanted
+            names = set(build_qnet(TABLE1).state_dict())
     out = {}
     for key, value in state.items():
         if not key.startswith(prefix):

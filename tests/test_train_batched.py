@@ -147,3 +147,24 @@ def test_learned_cars_and_self_play_on_four_envs_resume_exactly(compose_cfg, tmp
     trainer = Trainer(compose_cfg("train", extra + ["total_episodes=10"]), tmp_path / "cut")
     trainer.resume(tmp_path / "cut")  # the snapshots up to the checkpoint rejoin the pool
     assert len(trainer.collector.learned_controller().networks) == 1 + trainer.counters.episodes // 3
+
+
+def test_the_opponent_pool_does_not_change_the_learners_initial_weights(compose_cfg, tmp_path):
+    """Loading the pool's networks draws no random numbers: a run in mixed traffic starts from
+    the same weights, and goes on with the same random stream (replay sampling), as the same
+    seed with constant cars. Before, building the pool's networks moved the global generator,
+    and mode B's stage 1 in mixed traffic started from other weights
+    (docs/results/mixed_100k/stage1_flat/)."""
+    from tests.helpers import save_pool
+
+    pool = save_pool(tmp_path / "pool_src", seeds=(1, 2))
+    runs = {}
+    for name, extra in (("constant", []),
+                        ("mixed", ["opponent=mixed", f"env.opponent.pool=[{pool[0]},{pool[1]}]"])):
+        trainer = Trainer(compose_cfg("train", TINY + N4 + extra), tmp_path / name)
+        runs[name] = (trainer, torch.get_rng_state())
+    (constant, rng_constant), (mixed, rng_mixed) = runs["constant"], runs["mixed"]
+    assert len(mixed.collector.learned_controller().networks) == 2
+    a, b = constant.learner.qnet.state_dict(), mixed.learner.qnet.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert torch.equal(rng_constant, rng_mixed)
