@@ -238,7 +238,7 @@ def test_bench_stage1_reports_each_variant(compose_cfg, tmp_path):
         assert r["curve"][-1] == {"updates": 2, "survived": r["survived_non_goal"],
                                   "reached": r["reached_non_goal"], "both": r["both_non_goal"]}
         assert set(r["last_check_parts"]) == {"speed", "curvature", "steering_recall",
-                                              "steering_share"}
+                                              "steering_share", "greedy_actions"}
     # its own recording: 2 stable episodes, each cut 3 steps after reaching the target lane
     assert runs[0]["demo_recipe"] == "example" and runs[2]["demo_recipe"]["tail_steps"] == 3
     assert runs[2]["demos"] < 2 * 40

@@ -480,7 +480,45 @@ def test_stage1_agreement_parts_split_speed_and_curvature():
                        "action": torch.tensor([4, 3, 5, 1])}, [4])
     assert agreement(Always3(), held) == 0.25
     assert agreement_parts(Always3(), held, chunk=3) == {
-        "speed": 0.75, "curvature": 0.25, "steering_recall": 0.5, "steering_share": 1.0}
+        "speed": 0.75, "curvature": 0.25, "steering_recall": 0.5, "steering_share": 1.0,
+        "greedy_actions": 1.0}
+
+
+def test_stage1_check_warns_once_the_greedy_action_no_longer_depends_on_the_state(caplog):
+    """A network whose greedy action is the same on every held-out state (what a stage 1 whose
+    ReLU units died looks like) gets one warning line at the check; one that tells the states
+    apart (greedy action = the first pixel's value) gets none and counts its actions."""
+    import logging
+
+    from omegaconf import OmegaConf
+    from tensordict import TensorDict
+
+    from memrl.dqn.stage1 import Stage1Checks, Stage1Progress
+
+    class Always3(torch.nn.Module):
+        def forward(self, pixels):
+            return torch.nn.functional.one_hot(torch.full(pixels.shape[:1], 3), 9).float()
+
+    class FirstPixel(torch.nn.Module):
+        def forward(self, pixels):
+            return torch.nn.functional.one_hot(pixels[:, 0, 0, 0].long(), 9).float()
+
+    pixels = torch.zeros(5, 4, 84, 84, dtype=torch.uint8)
+    pixels[:, 0, 0, 0] = torch.tensor([0, 4, 4, 7, 8])
+    held = TensorDict({"pixels": pixels, "action": torch.tensor([4, 3, 5, 1, 4])}, [5])
+    cfg = OmegaConf.create({"drive_episodes": 0, "max_updates": 100, "criterion": "max_updates",
+                            "check_every": 10, "keep_best": True})
+    for net, distinct, warned in ((Always3(), 1.0, True), (FirstPixel(), 4.0, False)):
+        caplog.clear()
+        progress = Stage1Progress(updates=10)
+        with caplog.at_level(logging.WARNING, logger="memrl.dqn.stage1"):
+            metrics = Stage1Checks(cfg, {}, held, progress).check(net, torch.nn.Linear(1, 1), [1.0])
+        assert metrics["agreement_greedy_actions"] == distinct
+        lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert lines == (["stage 1: 10 updates: the greedy action is the same on all 5 held-out demo "
+                          "states: the network's output does not depend on its input (collapsed; "
+                          "dead ReLU units); it may not recover (docs/training.md, stage 1)"]
+                         if warned else [])
 
 
 class ScriptedDrives:

@@ -71,7 +71,8 @@ def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
     (curvature) change; ``steering_recall``: of the demo steps that change curvature (the
     lane-change and lane-keeping corrections, ~12% of scripted demos), the share where the
     greedy action changes curvature the same way; ``steering_share``: how often the greedy
-    action changes curvature at all.
+    action changes curvature at all; ``greedy_actions``: how many different greedy actions
+    the held-out states get (1: the output no longer depends on the input, a collapsed network).
     """
     greedy = torch.cat([qnet(held_out[i:i + chunk]["pixels"]).argmax(-1)
                         for i in range(0, len(held_out), chunk)])
@@ -83,6 +84,7 @@ def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
         "curvature": float(same_curv.float().mean()),
         "steering_recall": float(same_curv[steer].float().mean()) if bool(steer.any()) else 0.0,
         "steering_share": float((greedy % 3 != 1).float().mean()),
+        "greedy_actions": float(greedy.unique().numel()),
     }
 
 
@@ -173,6 +175,11 @@ class Stage1Checks:
             if bool(cfg.keep_best) and counts["both"] >= best:
                 p.best_updates = p.updates
                 self.best = {k: v.detach().clone() for k, v in loss_module.state_dict().items()}
+        if p.parts[-1]["greedy_actions"] == 1:
+            log.warning("stage 1: %d updates: the greedy action is the same on all %d held-out demo "
+                        "states: the network's output does not depend on its input (collapsed; "
+                        "dead ReLU units); it may not recover (docs/training.md, stage 1)",
+                        p.updates, len(self.held_out))
         p.stop_reason = stop_reason(cfg, p)
         log.info(
             "stage 1: %d updates, loss %.4f, agreement %.3f (%s)%s%s", p.updates, p.losses[-1],

@@ -1,0 +1,131 @@
+"""Mode B's first stage-1 updates under a probe: does the network learn or collapse?
+
+``python -m memrl.tools.stage1_probe RUN [updates=400] [every=50] [KEY=VALUE ...]`` builds the
+trainer of a run's ``config.yaml`` (RUN: the run folder or the file; ``KEY=VALUE``: OmegaConf
+dot-list overrides of it, e.g. ``seed=3`` or ``env.opponent.type=constant 'env.opponent.pool=[]'``),
+takes its stage-1 updates on the prior knowledge and, every ``every`` updates, prints the mean
+TD loss and what the network does on a fixed probe batch of 256 demo states: dead units per
+ReLU layer (a unit no probe state activates), the spread of Q over states, the number of
+different greedy actions. The first line fingerprints the initial weights (sha256 of the
+network's parameters), so two configs can be checked to start alike.
+
+Nothing is written outside a temporary folder. A stage 1 whose units die in its first updates
+keeps one greedy action for every state (docs/training.md, mode B).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+PROBE_STATES = 256
+USAGE = "usage: python -m memrl.tools.stage1_probe RUN [updates=400] [every=50] [KEY=VALUE ...]"
+
+
+@torch.no_grad()
+def dead_units(net: nn.Module, pixels: torch.Tensor) -> list[int]:
+    """Per ``nn.ReLU`` of ``net`` in forward order: units (channels of a conv map, features of
+    a linear layer) that no state of ``pixels`` activates (output 0 everywhere)."""
+    dead: list[int] = []
+
+    def count(_module: nn.Module, _inputs: Any, out: torch.Tensor) -> None:
+        active = (out > 0).flatten(2).any(-1) if out.dim() > 2 else out > 0
+        dead.append(int((~active.any(0)).sum()))
+
+    hooks = [m.register_forward_hook(count) for m in net.modules() if isinstance(m, nn.ReLU)]
+    try:
+        net(pixels)
+    finally:
+        for h in hooks:
+            h.remove()
+    return dead
+
+
+def fingerprint(net: nn.Module) -> str:
+    """First 12 hex digits of the sha256 of the network's parameters and buffers, in order."""
+    digest = hashlib.sha256()
+    for value in net.state_dict().values():
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:12]
+
+
+@torch.no_grad()
+def snapshot(net: nn.Module, pixels: torch.Tensor) -> dict[str, Any]:
+    """What the network does on the probe states now."""
+    q = net(pixels)
+    return {"dead": dead_units(net, pixels), "q_spread": float(q.std(0).mean()),
+            "greedy_actions": int(q.argmax(-1).unique().numel())}
+
+
+def probe(cfg: Any, updates: int, every: int, out_dir: Path) -> list[dict[str, Any]]:
+    """``updates`` stage-1 updates of the trainer of ``cfg`` (a mode B train config, stage 1
+    not yet done); rows at update 0 and every ``every`` updates. Returns the rows (the first
+    also has ``init``, the weights' fingerprint)."""
+    from memrl.dqn.loop import Trainer
+    from memrl.train import prior_knowledge
+
+    trainer = Trainer(cfg, out_dir, demos=prior_knowledge(cfg))
+    if not trainer.stage.offline:
+        raise ValueError("the probe takes mode B's stage 1: the config's mode has none")
+    net = trainer.learner.qnet
+    pixels = torch.cat([trainer.stage.buffer.sample()["pixels"]
+                        for _ in range(-(-PROBE_STATES // int(cfg.agent.batch_size)))])[:PROBE_STATES]
+    rows = [{"updates": 0, "loss": None, "init": fingerprint(net), **snapshot(net, pixels)}]
+    losses: list[float] = []
+    for step in range(1, updates + 1):
+        losses.append(trainer.learner.update(trainer.stage.buffer.sample()))
+        if step % every == 0 or step == updates:
+            recent = losses[-every:]
+            rows.append({"updates": step, "loss": sum(recent) / len(recent), **snapshot(net, pixels)})
+    return rows
+
+
+def line(row: dict[str, Any]) -> str:
+    loss = "-" if row["loss"] is None else f"{row['loss']:.4f}"
+    init = f"  init {row['init']}" if "init" in row else ""
+    return (f"updates {row['updates']:>6}  loss {loss:>7}  dead per ReLU {row['dead']}  "
+            f"Q spread over states {row['q_spread']:.4f}  greedy actions {row['greedy_actions']}{init}")
+
+
+def main(argv: list[str]) -> int:
+    from omegaconf import OmegaConf
+
+    from memrl.errors import UserError, load_run_config
+
+    if not argv or "=" in argv[0]:
+        print(USAGE, file=sys.stderr)
+        return 2
+    run, opts, overrides = Path(argv[0]), {"updates": 400, "every": 50}, []
+    for arg in argv[1:]:
+        key, _, value = arg.partition("=")
+        if key in opts:
+            if not value.isdigit() or int(value) < 1:
+                print(f"error: stage1_probe: {key} must be a positive integer, got {value!r}", file=sys.stderr)
+                return 2
+            opts[key] = int(value)
+        else:
+            overrides.append(arg)
+    file = run / "config.yaml" if run.is_dir() else run
+    try:
+        if not file.is_file():
+            raise UserError(f"{file}: no run config (expected a run folder or its config.yaml)")
+        cfg = load_run_config(file)
+        cfg.merge_with(OmegaConf.from_dotlist(overrides))
+        cfg.progress = True  # no echo of the trainer's log lines
+        with tempfile.TemporaryDirectory(prefix="stage1_probe_") as out:
+            for row in probe(cfg, opts["updates"], opts["every"], Path(out)):
+                print(line(row), flush=True)
+    except (UserError, ValueError) as err:
+        print(f"error: stage1_probe: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
