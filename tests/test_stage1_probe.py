@@ -55,6 +55,14 @@ def test_the_probe_reports_the_trainers_first_stage1_updates(compose_cfg, tmp_pa
         assert [int(row.split()[1]) for row in lines] == [0, 3, 6]
         assert lines[0].endswith(f"init {expected}")  # the pool leaves the initial weights alone
         assert all("greedy actions" in row for row in lines)
+    default = compose_cfg("train", tiny())
+    default.paths.output_dir = str(tmp_path / "default")
+    OmegaConf.save(default, tmp_path / "default.yaml", resolve=True)
+    for argv, message in (([str(run), "env.opponent.tpye=constant"], "override: Key 'tpye' is not in struct"),
+                          ([str(tmp_path / "default.yaml")], "mode default starts online")):
+        assert main([*argv, "updates=1"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -516,8 +516,8 @@ def test_stage1_check_warns_once_the_greedy_action_no_longer_depends_on_the_stat
         assert metrics["agreement_greedy_actions"] == distinct
         lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
         assert lines == (["stage 1: 10 updates: the greedy action is the same on all 5 held-out demo "
-                          "states: the network's output does not depend on its input (collapsed; "
-                          "dead ReLU units); it may not recover (docs/training.md, stage 1)"]
+                          "states: the network's output does not depend on its input (collapsed, "
+                          "e.g. dead ReLU units: python -m memrl.tools.stage1_probe); it may not recover"]
                          if warned else [])
 
 

@@ -177,8 +177,8 @@ class Stage1Checks:
                 self.best = {k: v.detach().clone() for k, v in loss_module.state_dict().items()}
         if p.parts[-1]["greedy_actions"] == 1:
             log.warning("stage 1: %d updates: the greedy action is the same on all %d held-out demo "
-                        "states: the network's output does not depend on its input (collapsed; "
-                        "dead ReLU units); it may not recover (docs/training.md, stage 1)",
+                        "states: the network's output does not depend on its input (collapsed, "
+                        "e.g. dead ReLU units: python -m memrl.tools.stage1_probe); it may not recover",
                         p.updates, len(self.held_out))
         p.stop_reason = stop_reason(cfg, p)
         log.info(

@@ -68,11 +68,14 @@ def probe(cfg: Any, updates: int, every: int, out_dir: Path) -> list[dict[str, A
     not yet done); rows at update 0 and every ``every`` updates. Returns the rows (the first
     also has ``init``, the weights' fingerprint)."""
     from memrl.dqn.loop import Trainer
+    from memrl.modes import mode_of
     from memrl.train import prior_knowledge
 
+    spec = mode_of(cfg)
+    if not spec.stages[0].offline(cfg):
+        raise ValueError(f"the probe takes a stage 1 on prior knowledge alone; mode {spec.name} "
+                         "starts online")
     trainer = Trainer(cfg, out_dir, demos=prior_knowledge(cfg))
-    if not trainer.stage.offline:
-        raise ValueError("the probe takes mode B's stage 1: the config's mode has none")
     net = trainer.learner.qnet
     pixels = torch.cat([trainer.stage.buffer.sample()["pixels"]
                         for _ in range(-(-PROBE_STATES // int(cfg.agent.batch_size)))])[:PROBE_STATES]
@@ -116,7 +119,12 @@ def main(argv: list[str]) -> int:
         if not file.is_file():
             raise UserError(f"{file}: no run config (expected a run folder or its config.yaml)")
         cfg = load_run_config(file)
-        cfg.merge_with(OmegaConf.from_dotlist(overrides))
+        OmegaConf.set_struct(cfg, True)  # an override must name a key the run has
+        try:
+            cfg.merge_with(OmegaConf.from_dotlist(overrides))
+        except Exception as err:  # OmegaConf's key and value errors
+            raise UserError(f"override: {str(err).splitlines()[0]}") from None
+        OmegaConf.set_struct(cfg, False)
         cfg.progress = True  # no echo of the trainer's log lines
         with tempfile.TemporaryDirectory(prefix="stage1_probe_") as out:
             for row in probe(cfg, opts["updates"], opts["every"], Path(out)):
