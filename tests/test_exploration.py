@@ -131,7 +131,7 @@ def test_ez_speed_holds_one_speed_change_and_takes_the_curvature_change_from_the
         held.append(explore.repeat.clone())
         assert bool((before <= 3).all())  # at most max_duration - 1 left after a start
     # the speed index changes only where a repeat started, so runs have drawn lengths
-    changes = sum(int((a != b).sum()) for a, b in zip(held, held[1:]))
+    changes = sum(int((a != b).sum()) for a, b in zip(held, held[1:], strict=False))
     assert 0 < changes <= starts
     assert set(torch.cat(held).tolist()) == {0, 1, 2}
 

@@ -70,7 +70,8 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
                              "priority": float(cfg.buffer.priority),
                              "priority_beta": float(cfg.buffer.priority_beta)}
     n_step = spec.n_step(cfg)
-    nstep = {"n_step": int(a.n_step if n_step is None else n_step), "gamma": float(a.gamma)}  # memrl.data.nstep
+    # memrl.data.nstep
+    nstep = {"n_step": int(a.n_step if n_step is None else n_step), "gamma": float(a.gamma)}
     if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
         nstep["stride"] = int(cfg.env.frame_stride)
     terms = (td_term(a), *spec.terms(cfg))

@@ -109,7 +109,8 @@ def main(argv: list[str]) -> int:
         key, _, value = arg.partition("=")
         if key in opts:
             if not value.isdigit() or int(value) < 1:
-                print(f"error: stage1_probe: {key} must be a positive integer, got {value!r}", file=sys.stderr)
+                print(f"error: stage1_probe: {key} must be a positive integer, got {value!r}",
+                      file=sys.stderr)
                 return 2
             opts[key] = int(value)
         else:
