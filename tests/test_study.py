@@ -122,6 +122,39 @@ def test_a_tiny_study_trains_evaluates_and_reports(first):
     assert row in md
 
 
+def test_the_report_sets_each_seeds_stage_1_against_its_final_weights(first):
+    """Survived and reached (non-goal) per seed, stage-1 weights and final ones, from their two
+    episodes.csv by hand; the count of seeds where the final is higher and P(final > stage 1)
+    by hand (pairs won, ties 1/2, over n m)."""
+    _, result = first
+    md = result.report.read_text()
+
+    def both(path):
+        with path.open() as f:
+            ng = [e for e in csv.DictReader(f) if e["initial_lane"] == "non_goal"]
+        return 100 * sum(e["survived"] == "1" and e["goal"] == "1" for e in ng) / len(ng)
+
+    before = [both(result.dir / "stage1" / f"B_constant_s{seed}" / "episodes.csv") for seed in (0, 1)]
+    after = [both(result.dir / "runs" / f"B_constant_s{seed}" / "eval" / "episodes.csv") for seed in (0, 1)]
+    higher = sum(a > b for a, b in zip(after, before, strict=True))
+    p = sum(1.0 if a > b else 0.5 if a == b else 0.0 for a in after for b in before) / 4
+    row = (f"| B | {before[0]:.0f}, {before[1]:.0f} | {after[0]:.0f}, {after[1]:.0f} | "
+           f"{higher} of 2 | {p:.2f} [")
+    assert row in md.split("## Mode B: stage-1 weights against the final weights")[1].split("## ")[0]
+
+
+def test_gain_counts_higher_seeds_and_the_probability_of_improvement():
+    from memrl.evaluation.stats import gain
+
+    g = gain([64, 82, 81], [86, 86, 85])
+    assert (g.higher, g.p) == (3, 1.0) and g.p_low == g.p_high == 1.0
+    g = gain([80, 81], [81, 78])  # 81 > 80, 81 = 81, 78 < both: (1 + 0.5) / 4
+    assert (g.higher, g.p) == (1, 0.375) and 0.0 <= g.p_low <= g.p <= g.p_high <= 1.0
+    assert gain([70], [75]).p is None
+    with pytest.raises(ValueError, match="2 values before, 1 after"):
+        gain([1, 2], [3])
+
+
 def test_the_report_says_how_each_stage_1_ended(first):
     """One row per B run from its summary.json and config, by hand: the kept check's update,
     its drives, held-out agreement and steering recall (none for Default runs)."""

@@ -226,3 +226,42 @@ def over_all_columns(ra: list[EvalResult], rb: list[EvalResult], cfg: StatsConfi
     p = bs.point(xs, bs.probability_of_improvement)
     p_low, p_high = _interval(xs, bs.probability_of_improvement, cfg, key)
     return Cell([diff], diff, low, high, "seeds"), len(ra), len(rb), p, p_low, p_high
+
+
+def survived_and_reached(result: EvalResult, lane: str = "non_goal") -> float:
+    """Episodes of ``lane`` that both survived and reached the target lane, per 100."""
+    recs = [r for r in result.records() if r.initial_lane == lane]
+    if not recs:
+        raise ValueError(f"{result.path}: no {lane} episodes")
+    return 100.0 * sum(bool(r.survived and r.goal) for r in recs) / len(recs)
+
+
+@dataclass
+class Gain:
+    """One measure before and after (e.g. mode B's stage-1 weights and its final ones), per unit."""
+
+    before: list[float]
+    after: list[float]
+    higher: int
+    """Units whose ``after`` exceeds their own ``before``."""
+    p: float | None
+    """P(after > before) over the units as two samples (Mann-Whitney U / (n m), ties 1/2);
+    None with fewer than two units."""
+    p_low: float | None = None
+    p_high: float | None = None
+
+
+def gain(before: Sequence[float], after: Sequence[float], cfg: StatsConfig | None = None,
+         key: int = 30_000) -> Gain:
+    """:class:`Gain` of paired per-unit values (``before[i]`` and ``after[i]``: the same unit),
+    with a bootstrap interval of P(after > before)."""
+    cfg = cfg or StatsConfig()
+    if len(before) != len(after):
+        raise ValueError(f"gain: {len(before)} values before, {len(after)} after")
+    higher = sum(a > b for a, b in zip(after, before, strict=True))
+    out = Gain(list(before), list(after), higher, None)
+    if len(before) >= 2:
+        xs = [np.asarray(after, dtype=float), np.asarray(before, dtype=float)]
+        out.p = bs.point(xs, bs.probability_of_improvement)
+        out.p_low, out.p_high = _interval(xs, bs.probability_of_improvement, cfg, key)
+    return out

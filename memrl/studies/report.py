@@ -176,6 +176,7 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
             if a is not None and b is not None and len(a.values) == len(b.values):
                 diff = ", ".join(f"{y - x:+.0f}" for x, y in zip(a.values, b.values, strict=True))
             lines.append(f"| {label} | {tables.column_name(col)} | {_fmt(a)} | {_fmt(b)} | {diff} |")
+    lines += gain_lines(inputs)
     lines += ["", "Periodic evaluation through stage 2 (`eval_periodic.csv`, its own scenes, "
               "non-goal starts, survival / goal per 100 episodes):", "",
               "| run | stage 1 (protocol) | first periodic | lowest periodic goal (env step) | last periodic "
@@ -201,6 +202,32 @@ def stage1_section(inputs: ReportInputs) -> list[str]:
             cells = ["no periodic evaluation (train with eval.every > 0)", "", ""]
         lines.append(f"| {run.name} | {first_s} | " + " | ".join(cells) + f" | {fin} |")
     return lines + [""]
+
+
+def gain_lines(inputs: ReportInputs) -> list[str]:
+    """Per mode B row: "survived and reached" (non-goal starts) of each seed's stage-1 and final
+    weights, on how many seeds the final is higher, and P(final > stage 1)."""
+    finals = {str(r.meta.get("run")): r for r in inputs.runs}
+    lines = ["", "Survived and reached the target lane in the same episode (non-goal starts, per 100), "
+             "each seed's stage-1 weights against its final ones; P(final > stage 1) over the seeds as "
+             "two samples (Mann-Whitney U / (n m)) [interval]:", "",
+             "| row | stage 1 (per seed) | final (per seed) | final higher | P(final > stage 1) |",
+             "|---|---|---|---|---|"]
+    for k, row in enumerate(stats.rows_of(inputs.stage1, inputs.stats)):
+        pairs = [(r, finals[str(r.meta.get("run"))]) for r in row.results if str(r.meta.get("run")) in finals]
+        if not pairs:
+            continue
+        try:
+            before = [stats.survived_and_reached(a) for a, _ in pairs]
+            after = [stats.survived_and_reached(b) for _, b in pairs]
+        except ValueError:  # no non-goal episodes in this protocol
+            continue
+        g = stats.gain(before, after, inputs.stats, key=30_000 + k)
+        p = "\u2014 (one seed)" if g.p is None else f"{g.p:.2f} [{g.p_low:.2f}, {g.p_high:.2f}]"
+        label = row.label[: -len(STAGE1_SUFFIX)] if row.label.endswith(STAGE1_SUFFIX) else row.label
+        lines.append(f"| {label} | {', '.join(_pct(x) for x in before)} | "
+                     f"{', '.join(_pct(x) for x in after)} | {g.higher} of {len(pairs)} | {p} |")
+    return lines if len(lines) > 5 else []
 
 
 def stage1_end(run: Path) -> dict[str, Any] | None:
