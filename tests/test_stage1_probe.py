@@ -65,9 +65,45 @@ def test_the_probe_reports_the_trainers_first_stage1_updates(compose_cfg, tmp_pa
         assert len(err) == 1 and message in err[0], err
 
 
+def test_the_probe_reads_a_trained_network_on_seeded_demo_states(tmp_path, capsys):
+    """weights=final: the counts of dead units, the dead conv channels and the greedy actions
+    on the 256 demo states that a generator seeded 0 picks, computed here directly."""
+    from memrl.checkpoint import save_qnet
+    from memrl.data.demos import load_demos, save_demos
+    from memrl.modules.qnet import QNetwork
+    from memrl.tools.stage1_probe import dead_indices
+
+    demos = save_demos(make_demos(300), tmp_path / "demos",
+                       {"env_config": {"duration": 30, "vehicles_count": 0}})
+    torch.manual_seed(3)
+    net = QNetwork()
+    with torch.no_grad():
+        net.features[3].bias[:5] = -1e4  # conv 2: channels 0-4 never active
+    run = tmp_path / "run"
+    save_qnet(run / "checkpoints" / "final.pt", net, {})
+    OmegaConf.save(OmegaConf.create({"env": {"duration": 30, "vehicles_count": 0, "bev": {"path_time": 0}},
+                                     "mode": {"name": "default"}}), run / "config.yaml")
+    td = load_demos(demos)
+    pick = torch.randperm(td.shape[0], generator=torch.Generator().manual_seed(0))[:256]
+    pixels = td["pixels"][pick]
+    dead = dead_indices(net.eval(), pixels)
+    with torch.no_grad():
+        greedy = int(net(pixels).argmax(-1).unique().numel())
+    assert dead[1][0] and set(range(5)) <= set(dead[1][1])  # the constructed dead channels
+    assert main([str(run), "weights=final", f"demos={demos}"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    head = (f"weights final  dead per ReLU {[len(u) for _, u in dead]}  "
+            f"dead channels of the conv layers {[u for c, u in dead if c]}  ")
+    assert len(out) == 1 and out[0].startswith(head)
+    assert out[0].endswith(f"greedy actions {greedy}")
+    assert main([str(run), "weights=final"]) == 2  # a Default run: no prior knowledge of its own
+    assert "give demos=" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv, message", [
     ([], "usage"), (["updates=3"], "usage"),
     (["RUN", "updates=0"], "updates must be a positive integer"),
+    (["RUN", "weights=best"], "weights must be final or stage1"),
     (["NOWHERE"], "no run config"),
 ])
 def test_bad_probe_arguments_give_one_line(tmp_path, capsys, argv, message):

@@ -9,6 +9,11 @@ ReLU layer (a unit no probe state activates), the spread of Q over states, the n
 different greedy actions. The first line fingerprints the initial weights (sha256 of the
 network's parameters), so two configs can be checked to start alike.
 
+``weights=final`` (or ``stage1``) trains nothing: it prints the same measures for the run's trained
+network (or its stage-1 weights) on 256 states drawn with a generator seeded 0 from the run's prior
+knowledge (``demos=PATH``: from that dataset, e.g. for a Default run), with the indices of each
+conv layer's dead channels.
+
 Nothing is written outside a temporary folder. A stage 1 whose units die in its first updates
 keeps one greedy action for every state (docs/training.md, mode B).
 """
@@ -25,26 +30,33 @@ import torch
 from torch import nn
 
 PROBE_STATES = 256
-USAGE = "usage: python -m memrl.tools.stage1_probe RUN [updates=400] [every=50] [KEY=VALUE ...]"
+USAGE = ("usage: python -m memrl.tools.stage1_probe RUN [updates=400] [every=50] "
+         "[weights=final|stage1] [demos=DATASET] [KEY=VALUE ...]")
 
 
 @torch.no_grad()
-def dead_units(net: nn.Module, pixels: torch.Tensor) -> list[int]:
-    """Per ``nn.ReLU`` of ``net`` in forward order: units (channels of a conv map, features of
-    a linear layer) that no state of ``pixels`` activates (output 0 everywhere)."""
-    dead: list[int] = []
+def dead_indices(net: nn.Module, pixels: torch.Tensor) -> list[tuple[bool, list[int]]]:
+    """Per ``nn.ReLU`` of ``net`` in forward order: (a conv map, the indices of its units that
+    no state of ``pixels`` activates): channels of a conv map, features of a linear layer."""
+    dead: list[tuple[bool, list[int]]] = []
 
-    def count(_module: nn.Module, _inputs: Any, out: torch.Tensor) -> None:
+    def record(_module: nn.Module, _inputs: Any, out: torch.Tensor) -> None:
         active = (out > 0).flatten(2).any(-1) if out.dim() > 2 else out > 0
-        dead.append(int((~active.any(0)).sum()))
+        dead.append((out.dim() > 2, torch.nonzero(~active.any(0)).flatten().tolist()))
 
-    hooks = [m.register_forward_hook(count) for m in net.modules() if isinstance(m, nn.ReLU)]
+    hooks = [m.register_forward_hook(record) for m in net.modules() if isinstance(m, nn.ReLU)]
     try:
         net(pixels)
     finally:
         for h in hooks:
             h.remove()
     return dead
+
+
+def dead_units(net: nn.Module, pixels: torch.Tensor) -> list[int]:
+    """Per ``nn.ReLU`` of ``net`` in forward order: how many units no state of ``pixels``
+    activates (output 0 everywhere)."""
+    return [len(units) for _, units in dead_indices(net, pixels)]
 
 
 def fingerprint(net: nn.Module) -> str:
@@ -89,44 +101,91 @@ def probe(cfg: Any, updates: int, every: int, out_dir: Path) -> list[dict[str, A
     return rows
 
 
+def probe_weights(cfg: Any, run: Path, which: str, demos: str | None) -> dict[str, Any]:
+    """A trained network of ``run`` (``which``: ``final`` or ``stage1``) on 256 demo states drawn
+    with a generator seeded 0 from the run's prior knowledge (``demos``: another dataset)."""
+    from memrl.checkpoint import load_qnet, load_stage1_qnet
+    from memrl.data.demos import load_demos
+    from memrl.modes import mode_of
+    from memrl.train import prior_knowledge
+
+    if demos is not None:
+        td = load_demos(Path(demos), env_cfg=cfg.env)
+    elif mode_of(cfg).needs_demos:
+        td = prior_knowledge(cfg)
+    else:
+        raise ValueError("this run has no prior knowledge to draw the probe states from: give "
+                         "demos=<a prior-knowledge dataset>")
+    pick = torch.randperm(td.shape[0], generator=torch.Generator().manual_seed(0))[:PROBE_STATES]
+    pixels = td["pixels"][pick]
+    net = load_stage1_qnet(run) if which == "stage1" else load_qnet(run)[0]
+    convs = [units for conv, units in dead_indices(net, pixels) if conv]
+    return {"weights": which, **snapshot(net, pixels), "dead_conv_channels": convs}
+
+
 def line(row: dict[str, Any]) -> str:
+    if "weights" in row:
+        return (f"weights {row['weights']}  dead per ReLU {row['dead']}  dead channels of the conv "
+                f"layers {row['dead_conv_channels']}  Q spread over states {row['q_spread']:.4f}  "
+                f"greedy actions {row['greedy_actions']}")
     loss = "-" if row["loss"] is None else f"{row['loss']:.4f}"
     init = f"  init {row['init']}" if "init" in row else ""
     return (f"updates {row['updates']:>6}  loss {loss:>7}  dead per ReLU {row['dead']}  "
             f"Q spread over states {row['q_spread']:.4f}  greedy actions {row['greedy_actions']}{init}")
 
 
-def main(argv: list[str]) -> int:
+def parse(argv: list[str]) -> dict[str, Any]:
+    """The command line's options (``updates``, ``every``, ``weights``, ``demos``) and the
+    config overrides (``overrides``); raises ValueError naming a bad value."""
+    opts: dict[str, Any] = {"updates": 400, "every": 50, "weights": None, "demos": None, "overrides": []}
+    for arg in argv:
+        key, _, value = arg.partition("=")
+        if key == "weights" and value not in ("final", "stage1"):
+            raise ValueError(f"weights must be final or stage1, got {value!r}")
+        if key in ("updates", "every") and (not value.isdigit() or int(value) < 1):
+            raise ValueError(f"{key} must be a positive integer, got {value!r}")
+        if key in ("weights", "demos"):
+            opts[key] = value
+        elif key in ("updates", "every"):
+            opts[key] = int(value)
+        else:
+            opts["overrides"].append(arg)
+    return opts
+
+
+def run_config(file: Path, overrides: list[str]) -> Any:
+    """The run's config with ``overrides`` (each must name a key the run has)."""
     from omegaconf import OmegaConf
 
     from memrl.errors import UserError, load_run_config
 
+    if not file.is_file():
+        raise UserError(f"{file}: no run config (expected a run folder or its config.yaml)")
+    cfg = load_run_config(file)
+    OmegaConf.set_struct(cfg, True)
+    try:
+        cfg.merge_with(OmegaConf.from_dotlist(overrides))
+    except Exception as err:  # OmegaConf's key and value errors
+        raise UserError(f"override: {str(err).splitlines()[0]}") from None
+    OmegaConf.set_struct(cfg, False)
+    cfg.progress = True  # no echo of the trainer's log lines
+    return cfg
+
+
+def main(argv: list[str]) -> int:
+    from memrl.errors import UserError
+
     if not argv or "=" in argv[0]:
         print(USAGE, file=sys.stderr)
         return 2
-    run, opts, overrides = Path(argv[0]), {"updates": 400, "every": 50}, []
-    for arg in argv[1:]:
-        key, _, value = arg.partition("=")
-        if key in opts:
-            if not value.isdigit() or int(value) < 1:
-                print(f"error: stage1_probe: {key} must be a positive integer, got {value!r}",
-                      file=sys.stderr)
-                return 2
-            opts[key] = int(value)
-        else:
-            overrides.append(arg)
+    run = Path(argv[0])
     file = run / "config.yaml" if run.is_dir() else run
     try:
-        if not file.is_file():
-            raise UserError(f"{file}: no run config (expected a run folder or its config.yaml)")
-        cfg = load_run_config(file)
-        OmegaConf.set_struct(cfg, True)  # an override must name a key the run has
-        try:
-            cfg.merge_with(OmegaConf.from_dotlist(overrides))
-        except Exception as err:  # OmegaConf's key and value errors
-            raise UserError(f"override: {str(err).splitlines()[0]}") from None
-        OmegaConf.set_struct(cfg, False)
-        cfg.progress = True  # no echo of the trainer's log lines
+        opts = parse(argv[1:])
+        cfg = run_config(file, opts["overrides"])
+        if opts["weights"] is not None:
+            print(line(probe_weights(cfg, file.parent, opts["weights"], opts["demos"])), flush=True)
+            return 0
         with tempfile.TemporaryDirectory(prefix="stage1_probe_") as out:
             for row in probe(cfg, opts["updates"], opts["every"], Path(out)):
                 print(line(row), flush=True)
