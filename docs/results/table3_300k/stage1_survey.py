@@ -4,8 +4,9 @@ python docs/results/table3_300k/stage1_survey.py SEEDS [UPDATES]   e.g. 10,11,12
 
 The kept mixed B config without its pool (constant cars), per seed: 8 batches drawn first (the
 states on which the original check counted dead units; they shift the sampling stream against a
-run of that seed), then the trainer's own stage-1 updates, and the mean TD loss over the last 50. Prints one line per seed. Run from the repository root (the example prior knowledge
-is read from, or recorded into, outputs/data).
+run of that seed), then the trainer's own stage-1 updates, and the mean TD loss over the last 50.
+Prints one line per seed. Run from the repository root (the example prior knowledge is read
+from, or recorded into, outputs/data).
 """
 import sys
 import tempfile
