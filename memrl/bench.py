@@ -66,6 +66,12 @@ def _stage1(cfg: DictConfig) -> dict[str, Any]:
     return stage1_check.run(**values)
 
 
+def _pool(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import pool_speed
+
+    return pool_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
 def _eval(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import eval_speed
 
@@ -77,7 +83,7 @@ BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "s
                                                                  "learner": _learner,
                                                                  "memory": _memory,
                                                                  "e2e": _e2e, "batched": _batched,
-                                                                 "eval": _eval}
+                                                                 "eval": _eval, "pool": _pool}
 
 
 def machine() -> dict[str, Any]:

@@ -415,7 +415,7 @@ def check_deploy(cfg: DictConfig) -> None:
 # ---------------------------------------------------------------------------------------------
 # bench
 
-BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1", "eval")
+BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1", "eval", "pool")
 
 
 @dataclass
@@ -510,6 +510,16 @@ class EvalBench:
 
 
 @dataclass
+class PoolBench:
+    cars: list[int] = spec(ge=1, nonempty=True)
+    networks: int = spec(ge=1)
+    seconds: float = spec(gt=0)
+    rounds: int = spec(ge=1)
+    threads: int = spec(ge=1)
+    seed: int = spec(ge=0, le=SEED_MAX)
+
+
+@dataclass
 class BenchSchema:
     """``conf/bench.yaml``: side-by-side benchmarks."""
 
@@ -524,6 +534,7 @@ class BenchSchema:
     e2e: E2EBench = field(default_factory=E2EBench)
     stage1: Stage1Bench = field(default_factory=Stage1Bench)
     eval: EvalBench = field(default_factory=EvalBench)
+    pool: PoolBench = field(default_factory=PoolBench)
     debug: bool = MISSING
     paths: Any = MISSING
 

@@ -168,6 +168,29 @@ def test_learned_cars_of_all_envs_share_one_forward_pass_per_step(pool):
     assert int(engine.is_learned.sum()) == 8 * 3
 
 
+def test_learned_cars_of_inactive_envs_cost_no_forward_and_change_no_active_env(pool):
+    """An env not ``active`` (finished, about to be reset or idle) runs none of its learned cars
+    through the pool; the active envs step exactly as when every env is active."""
+    config = {"opponent": {"type": "learned", "pool": pool}, "vehicles_count": 3}
+    every, some = BatchedLaneChange(config, 4), BatchedLaneChange(config, 4)
+    for engine in (every, some):
+        engine.reset(seeds=list(range(4)))
+    seen: list[int] = []
+    forward = some.learned.q_values
+    some.learned.q_values = lambda index, stacks: (seen.append(len(stacks)), forward(index, stacks))[1]
+    active = torch.tensor([True, False, True, False])
+    for _ in range(6):
+        a = every.step(torch.full((4,), 4))
+        b = some.step(torch.full((4,), 4), active=active)
+        assert torch.equal(a.reward[active], b.reward[active])
+        assert torch.equal(a.terminated[active], b.terminated[active])
+        assert torch.equal(every.observation()[active], some.observation()[active])
+    assert int(some.is_learned[active].sum()) == 6
+    assert seen == [6] * 6  # the learned cars of envs 0 and 2 only
+    some.step(torch.full((4,), 4), active=torch.zeros(4, dtype=torch.bool))
+    assert seen == [6] * 6  # no active env: no forward at all
+
+
 def test_gymnasium_make_vec_equals_sync_vector_env_over_reference_envs():
     n, config = 6, NON_GOAL
     ref = gym.vector.SyncVectorEnv([lambda: LaneChangeEnv(config=config) for _ in range(n)])

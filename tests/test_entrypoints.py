@@ -60,3 +60,15 @@ def test_bench_opponents_times_learned_and_constant_traffic(compose_cfg, tmp_pat
     cfg = compose_cfg("bench", ["benchmarks=[opponents]", "opponents.steps=10"])
     res = bench(cfg, tmp_path)["opponents"]
     assert res["learned_steps_per_s"] > 0 and res["constant_steps_per_s"] > 0
+
+
+def test_bench_pool_times_the_grouped_forward_beside_vmap_and_both_agree(compose_cfg, tmp_path):
+    cfg = compose_cfg("bench", ["benchmarks=[pool]", "pool.cars=[5]", "pool.networks=2", "pool.seconds=0.01",
+                                "pool.rounds=1"])
+    res = bench(cfg, tmp_path)["pool"]
+    assert res["grouped_ms"]["5"] > 0 and res["vmap_ms"]["5"] > 0
+    assert res["speedup"]["5"] == pytest.approx(res["vmap_ms"]["5"] / res["grouped_ms"]["5"])
+    # the same float32 sums in other orders: far below the Q-values' own size (a car given
+    # another network's row would differ by about that size)
+    assert res["max_abs_q_difference"]["5"] <= 1e-3 * res["max_abs_q"]["5"]
+    assert json.loads((tmp_path / "bench.json").read_text())["pool"]["networks"] == 2

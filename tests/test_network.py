@@ -261,6 +261,19 @@ def test_a_checkpoint_saved_before_the_network_key_resumes_as_table1(compose_cfg
         ckpt.load_state(where, compose_cfg("train", TINY + ["network=dueling"]))
 
 
+def test_a_pool_of_one_architecture_gives_each_car_exactly_its_own_networks_q_values():
+    """Cars of several networks of one architecture: each car's Q-values are those of its own
+    network run alone, to the bit (one forward per network on its own cars)."""
+    torch.manual_seed(0)
+    nets = [QNetwork() for _ in range(3)]
+    pool = LearnedCarController(nets)
+    x, index = fixed_input(7), torch.tensor([2, 0, 1, 2, 0, 0, 1])
+    got = pool.q_values(index, x)
+    for i, net in enumerate(nets):
+        rows = index == i
+        assert torch.equal(got[rows], torch.cat([net(part) for part in x[rows].split(64)]))
+
+
 def test_a_pool_of_several_architectures_gives_each_car_its_own_networks_q_values(tmp_path):
     torch.manual_seed(0)
     nets = [QNetwork(), build_qnet(DUELING), build_qnet({**TABLE1, "layernorm": True})]

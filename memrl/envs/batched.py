@@ -490,9 +490,14 @@ class BatchedLaneChange:
 
     def _learned_actions(self, active: torch.Tensor | None) -> torch.Tensor:
         """Actions ``[N, C]`` of the learned cars (others: IDLE) from their own views, through
-        one batched forward pass of the pool; envs not ``active`` draw no exploration."""
+        one call of the pool; the cars of envs not ``active`` (about to be reset, or idle) stay
+        IDLE and cost nothing (their views restart at the reset)."""
         assert self.learned is not None and self._car_frames is not None
-        env_i, slot_i = torch.nonzero(self.is_learned, as_tuple=True)
+        out = torch.full(self.present.shape, IDLE, dtype=torch.long, device=self.device)
+        driven = self.is_learned if active is None else self.is_learned & active.to(self.device)[:, None]
+        if not bool(driven.any()):
+            return out
+        env_i, slot_i = torch.nonzero(driven, as_tuple=True)
         state = self.state[env_i]  # [M, C, 5] each learned car's env
         labels = torch.where(self.is_learned[env_i], LABEL["learned"], LABEL["constant"])
         labels[:, 0] = LABEL["learned"]  # to a learned car the agent is another learned driver
@@ -514,16 +519,12 @@ class BatchedLaneChange:
         if eps > 0:  # per env, from the env's generator, in slot order, as the reference does
             chosen_np = chosen.cpu().numpy()
             envs = env_i.cpu().numpy()
-            counts = None if active is None else active.cpu().numpy()
             for e in np.unique(envs):
-                if counts is not None and not counts[e]:
-                    continue
                 rows = np.flatnonzero(envs == e)
                 rng = self.rngs[int(e)]
                 explore = rng.random(len(rows)) < eps  # type: ignore[union-attr]
                 chosen_np[rows] = np.where(explore, rng.integers(N_ACTIONS, size=len(rows)),  # type: ignore[union-attr]
                                            chosen_np[rows])
             chosen = torch.as_tensor(chosen_np, device=self.device)
-        out = torch.full(self.present.shape, IDLE, dtype=torch.long, device=self.device)
         out[env_i, slot_i] = chosen
         return out

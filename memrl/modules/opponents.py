@@ -2,8 +2,8 @@
 
 Each learned car sees its own 84x84 BEV stack (rendered centred on it, its own target lane
 highlighted, itself in the agent's shade) and acts with the 9 actions through one of the pool's
-Q-networks. All learned cars of a step are served by one batched forward pass: the pool's
-networks are stacked with ``torch.func.stack_module_state`` and run under ``vmap``.
+Q-networks. All learned cars of a step are served together: one batched forward pass per pool
+network that some car uses, on that network's cars only.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torch.func import functional_call, stack_module_state
 
 from memrl.envs.controllers import CarController
 from memrl.envs.stride import history_length, select_frames
@@ -94,11 +93,6 @@ def pool_views(pool: Sequence[str]) -> list[tuple[Path, dict[str, Any] | None]]:
     return [(file, seen_view(load_qnet(file)[1])) for file in expand_pool(pool)]
 
 
-def _signature(net: torch.nn.Module) -> tuple:
-    """What decides whether networks can be stacked: class and parameter names and shapes."""
-    return (type(net), tuple((k, tuple(v.shape)) for k, v in net.state_dict().items()))
-
-
 class LearnedCarController(CarController):
     """Drives cars with greedy (or epsilon-greedy) Q-networks of past agents.
 
@@ -134,15 +128,6 @@ class LearnedCarController(CarController):
         # channels-last weights: the same Q-values, several times faster convs on CPU
         self.networks = [n.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
                          for n in nets]
-        # one vmapped pass needs networks of one architecture; a pool of several (a Table I
-        # agent and a dueling one) runs one pass per network its cars use
-        self._one_arch = len({_signature(n) for n in self.networks}) == 1
-        if not self._one_arch:
-            return
-        params, buffers = stack_module_state(self.networks)  # type: ignore[arg-type]
-        self._params = {k: v.detach() for k, v in params.items()}
-        self._buffers = buffers
-        self._skeleton = copy.deepcopy(self.networks[0]).to("meta")
 
     def check_view(self, env: Any) -> None:
         """Refuse (one line) pool agents trained on other frames than ``env`` draws."""
@@ -164,25 +149,20 @@ class LearnedCarController(CarController):
 
     @torch.no_grad()
     def q_values(self, model_index: torch.Tensor, stacks: torch.Tensor) -> torch.Tensor:
-        """Q-values ``[N, 9]``: car i through network ``model_index[i]``, in one pass (vmapped
-        over the pool's networks when the cars use more than one of them)."""
+        """Q-values ``[N, 9]``: car i through network ``model_index[i]``; one batched forward
+        per network on its own cars (so each car costs one network's forward, equal to that
+        network run alone; ``vmap`` over the pool ran every network on every car, and measured
+        10-20x slower on CPU: ``python -m memrl.bench pool``)."""
         self.forward_calls += 1
-        if bool((model_index == model_index[0]).all()):  # one network: a plain batched forward
+        # in chunks: past ~64 stacks the activations outgrow the caches and each costs more
+        if bool((model_index == model_index[0]).all()):  # one network: no gather, no scatter
             net = self.networks[int(model_index[0])]
-            # in chunks: past ~64 stacks the activations outgrow the caches and each costs more
             return torch.cat([net(part) for part in stacks.split(64)])
-        if not self._one_arch:
-            out = torch.empty(len(stacks), N_ACTIONS, device=stacks.device)
-            for index in model_index.unique().tolist():
-                cars = model_index == index
-                out[cars] = torch.cat([self.networks[index](part) for part in stacks[cars].split(64)])
-            return out
-
-        def run(params: dict, buffers: dict, x: torch.Tensor) -> torch.Tensor:
-            return functional_call(self._skeleton, (params, buffers), (x,))
-
-        every = torch.vmap(run, in_dims=(0, 0, None))(self._params, self._buffers, stacks)
-        return every[model_index, torch.arange(len(model_index), device=model_index.device)]
+        out = torch.empty(len(stacks), N_ACTIONS, device=stacks.device)
+        for index in model_index.unique().tolist():
+            cars = model_index == index
+            out[cars] = torch.cat([self.networks[index](part) for part in stacks[cars].split(64)])
+        return out
 
     def reset(self, env: LaneChangeEnv, cars: Sequence[CurvatureVehicle]) -> None:
         """A new episode: each car's network and target lane were drawn with the scene
