@@ -12,15 +12,17 @@ from __future__ import annotations
 import copy
 import statistics
 import time
+from collections.abc import Callable
 from typing import Any
 
 import torch
 from torch.func import functional_call, stack_module_state
 
 
-def vmap_q_values(networks: list[torch.nn.Module], index: torch.Tensor, stacks: torch.Tensor) -> torch.Tensor:
-    """The reference: every network of the pool on every car under ``vmap``, then car i's row
-    of network ``index[i]`` (memrl's pool forward up to commit bffddbd)."""
+def vmap_forward(networks: list[torch.nn.Module]) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """The reference (memrl's pool forward up to commit bffddbd): the networks stacked once,
+    then per call every network on every car under ``vmap`` and car i's row of network
+    ``index[i]``."""
     params, buffers = stack_module_state(networks)  # type: ignore[arg-type]
     params = {k: v.detach() for k, v in params.items()}
     skeleton = copy.deepcopy(networks[0]).to("meta")
@@ -28,8 +30,11 @@ def vmap_q_values(networks: list[torch.nn.Module], index: torch.Tensor, stacks: 
     def run(p: dict, b: dict, x: torch.Tensor) -> torch.Tensor:
         return functional_call(skeleton, (p, b), (x,))
 
-    every = torch.vmap(run, in_dims=(0, 0, None))(params, buffers, stacks)
-    return every[index, torch.arange(len(index))]
+    def forward(index: torch.Tensor, stacks: torch.Tensor) -> torch.Tensor:
+        every = torch.vmap(run, in_dims=(0, 0, None))(params, buffers, stacks)
+        return every[index, torch.arange(len(index))]
+
+    return forward
 
 
 def _ms_per_call(fn: Any, seconds: float) -> float:
@@ -51,7 +56,7 @@ def run(cars: list[int], networks: int = 3, seconds: float = 2.0, rounds: int = 
     torch.set_num_threads(threads)
     try:
         pool = LearnedCarController([QNetwork() for _ in range(networks)])
-        networks_of = pool.networks
+        reference = vmap_forward(pool.networks)
         res: dict[str, Any] = {"networks": networks, "threads": threads, "grouped_ms": {}, "vmap_ms": {},
                                "speedup": {}, "max_abs_q": {}, "max_abs_q_difference": {},
                                "greedy_agreement": {}}
@@ -59,15 +64,14 @@ def run(cars: list[int], networks: int = 3, seconds: float = 2.0, rounds: int = 
             for m in cars:
                 x = torch.rand(m, 4, 84, 84)
                 index = torch.randint(0, networks, (m,))
-                ours, ref = pool.q_values(index, x), vmap_q_values(networks_of, index, x)
+                ours, ref = pool.q_values(index, x), reference(index, x)
                 res["max_abs_q"][str(m)] = float(ref.abs().max())
                 res["max_abs_q_difference"][str(m)] = float((ours - ref).abs().max())
                 res["greedy_agreement"][str(m)] = float((ours.argmax(-1) == ref.argmax(-1)).float().mean())
                 grouped, vmapped = [], []
                 for _ in range(rounds):
                     grouped.append(_ms_per_call(lambda i=index, s=x: pool.q_values(i, s), seconds))
-                    vmapped.append(_ms_per_call(lambda i=index, s=x: vmap_q_values(networks_of, i, s),
-                                                seconds))
+                    vmapped.append(_ms_per_call(lambda i=index, s=x: reference(i, s), seconds))
                 g, v = statistics.median(grouped), statistics.median(vmapped)
                 res["grouped_ms"][str(m)], res["vmap_ms"][str(m)], res["speedup"][str(m)] = g, v, v / g
     finally:

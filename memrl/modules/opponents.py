@@ -155,9 +155,6 @@ class LearnedCarController(CarController):
         10-20x slower on CPU: ``python -m memrl.bench pool``)."""
         self.forward_calls += 1
         # in chunks: past ~64 stacks the activations outgrow the caches and each costs more
-        if bool((model_index == model_index[0]).all()):  # one network: no gather, no scatter
-            net = self.networks[int(model_index[0])]
-            return torch.cat([net(part) for part in stacks.split(64)])
         out = torch.empty(len(stacks), N_ACTIONS, device=stacks.device)
         for index in model_index.unique().tolist():
             cars = model_index == index
