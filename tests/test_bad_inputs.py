@@ -168,6 +168,8 @@ ROWS = [
     ("bench", ["e2e.total_frames=0"], "e2e.total_frames"),
     ("bench", ["stage1.updates=0"], "stage1.updates"),
     ("bench", ["eval.episodes=0"], "eval.episodes"),
+    ("bench", ["pool.cars=[0]"], "pool.cars"),
+    ("bench", ["pool.networks=0"], "pool.networks"),
     ("bench", ["debug=maybe"], "debug"),
     # preview
     ("preview", ["seed=-1"], "seed"),
