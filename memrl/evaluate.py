@@ -3,7 +3,9 @@
 Evaluates policies under the Table III protocol (``conf/protocol/paper.yaml``): the same
 scenes for every policy, survival and goal scores for random and non-goal starts. A trained
 run's results go into ``<run>/eval/`` (next to its ``config.yaml``, where the report finds
-them); other policies' into this command's Hydra run folder.
+them), or ``<run>/eval_<type>/`` in other test traffic (``opponent=mixed``: ``eval_mixed/``, as
+a study names it); other policies' into this command's Hydra run folder. A run's evaluation
+made under another protocol is never replaced unless ``overwrite=true``.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from memrl.schemas import check_evaluate
 
 if TYPE_CHECKING:  # the evaluation stack (torch) loads on the first run, not for --help
     from memrl.evaluation.policies import PolicySource
+    from memrl.evaluation.protocol import ProtocolConfig
     from memrl.evaluation.results import EvalResult
 
 log = logging.getLogger(__name__)
@@ -44,17 +47,24 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
         out_dir: folder for policies that are not training runs (default: Hydra's
             ``paths.output_dir``).
     """
-    from memrl.evaluation.protocol import check_protocol
+    from memrl.evaluation.policies import DEFAULT_SUBDIR, CheckpointSource
+    from memrl.evaluation.protocol import check_protocol, suffixed, traffic_tag
     from memrl.evaluation.session import evaluate_candidate, score_line
 
     check_evaluate(cfg)
     protocol = check_protocol(cfg.protocol)
     source: PolicySource = instantiate_checked(cfg.policy)  # type: ignore[assignment]
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
+    if isinstance(source, CheckpointSource) and source.subdir is None:
+        source.subdir = suffixed(DEFAULT_SUBDIR, traffic_tag(protocol.opponent))  # mixed cars: eval_mixed
+        policy_cfg["subdir"] = source.subdir  # type: ignore[index]
     candidates = source.candidates()
     resume = resumed(cfg, candidates) if cfg.get("resume") is not None else None
     if resume is not None:
         protocol = check_protocol(resume.protocol)  # the stopped evaluation's scenes
+    elif not cfg.overwrite:
+        for cand in candidates:
+            refuse_other_protocol(cand.out_dir, protocol)
     results = []
     for cand in candidates:
         cand.meta["policy_config"] = policy_cfg
@@ -66,6 +76,32 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
         print(score_line(result), f"-> {result.path}")
         results.append(result)
     return results
+
+
+def refuse_other_protocol(folder: Path | None, protocol: ProtocolConfig) -> None:
+    """Raise when ``folder`` holds an evaluation made under another protocol (e.g. a run's
+    ``eval/`` on constant-speed cars when this one is in mixed traffic): evaluating would
+    replace it. An unreadable ``eval.json`` is replaced."""
+    from dataclasses import asdict
+
+    from memrl.errors import UserError
+    from memrl.evaluation.protocol import protocol_id
+    from memrl.evaluation.results import EVAL_JSON, read_result
+
+    if folder is None or not (folder / EVAL_JSON).is_file():
+        return
+    try:
+        old = read_result(folder)
+    except (ValueError, KeyError, TypeError):
+        return
+    if old.protocol_id == protocol_id(protocol):
+        return
+    new = asdict(protocol)
+    keys = sorted(k for k in set(old.protocol) | set(new)
+                  if k != "initial_lanes" and old.protocol.get(k) != new.get(k))
+    raise UserError(f"{folder} holds an evaluation under another protocol (differs in: "
+                    f"{', '.join(keys) or 'its id'}); evaluating would replace it: give "
+                    f"policy.subdir=<another folder>, or overwrite=true to replace it")
 
 
 def resumed(cfg: DictConfig, candidates: list) -> EvalResult:

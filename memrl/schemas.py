@@ -285,6 +285,8 @@ class EvaluateSchema:
     debug: bool = MISSING
     resume: str | None = None
     """Folder of a stopped evaluation (a person's): drive its missing episodes (same scenes)."""
+    overwrite: bool = MISSING
+    """Replace a run's evaluation made under another protocol (false: refuse)."""
     env: Any = MISSING
     protocol: Any = MISSING
     policy: Any = MISSING

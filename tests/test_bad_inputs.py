@@ -122,6 +122,7 @@ ROWS = [
     ("evaluate", ["policy=scripted", "progress=maybe"], "progress"),
     ("evaluate", [], "policy.run"),
     ("evaluate", ["policy=scripted", "debug=maybe"], "debug"),
+    ("evaluate", ["policy=scripted", "overwrite=maybe"], "overwrite"),
     ("evaluate", ["policy.run=/nonexistent/run"], "policy.run"),
     ("evaluate", ["policy=scripted", "protocol.episodes=0"], "episodes"),
     ("evaluate", ["policy=scripted", "env.vehicles_count=-1"], "vehicles_count"),

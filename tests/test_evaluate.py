@@ -236,6 +236,33 @@ def test_evaluate_checkpoint_writes_into_the_run_folder(compose_cfg, tmp_path):
     assert net is not None
 
 
+def test_other_test_traffic_goes_beside_eval_and_another_protocol_is_not_replaced(compose_cfg, tmp_path):
+    from memrl.errors import UserError
+
+    def ev(overrides: list[str]) -> list:
+        return evaluate(compose_cfg("evaluate", overrides), out_dir=tmp_path / "unused")
+
+    run = fake_run(tmp_path / "run", compose_cfg, seed=1)
+    pool = fake_run(tmp_path / "pool", compose_cfg, seed=2)
+    ev([f"policy.run={run}", *SMALL])
+    constant = (run / "eval" / "eval.json").read_bytes()
+    [mixed] = ev([f"policy.run={run}", "opponent=mixed", f"env.opponent.pool=[{pool}]", *SMALL])
+    assert mixed.path == run / "eval_mixed" and mixed.protocol["opponent"]["type"] == "mixed"
+    doc = json.loads((run / "eval_mixed" / "eval.json").read_text())
+    assert doc["meta"]["policy_config"]["subdir"] == "eval_mixed"
+    assert (run / "eval" / "eval.json").read_bytes() == constant  # the constant-traffic folder untouched
+    longer = [f"policy.run={run}", *SMALL, "protocol.duration=30"]
+    refusal = r"eval holds an evaluation under another protocol \(differs in: duration\)"
+    with pytest.raises(UserError, match=refusal):
+        ev(longer)
+    assert (run / "eval" / "eval.json").read_bytes() == constant
+    [elsewhere] = ev([*longer, "policy.subdir=eval_30"])
+    assert elsewhere.path == run / "eval_30" and (run / "eval" / "eval.json").read_bytes() == constant
+    [replaced] = ev([*longer, "overwrite=true"])
+    assert replaced.path == run / "eval"
+    assert json.loads((run / "eval" / "eval.json").read_text())["protocol"]["duration"] == 30
+
+
 @pytest.mark.parametrize("policy", ["scripted", "random"])
 def test_untrained_policies_are_evaluated_into_the_output_folder(compose_cfg, tmp_path, policy):
     [result] = evaluate(compose_cfg("evaluate", [f"policy={policy}", *SMALL]), out_dir=tmp_path)

@@ -184,16 +184,22 @@ def run_label(cfg: dict[str, Any]) -> str:
     return row_label(label, str(traffic), str(variant) if variant else None)
 
 
+DEFAULT_SUBDIR = "eval"
+"""A trained run's evaluation folder under the paper's constant-speed test cars."""
+
+
 class CheckpointSource(PolicySource):
     """Greedy policies of finished training runs.
 
     Args:
         run: a run folder, a folder holding runs (a multirun), or a list of them.
         name: row label; None: the run's mode (Default, A, B).
-        subdir: results folder inside each run.
+        subdir: results folder inside each run; None: ``eval`` (:data:`DEFAULT_SUBDIR`), which
+            ``memrl.evaluate`` turns into ``eval_<type>`` for test traffic other than the
+            paper's constant-speed cars (``eval_mixed``, as the study names it).
     """
 
-    def __init__(self, run: str | Sequence[str], name: str | None = None, subdir: str = "eval") -> None:
+    def __init__(self, run: str | Sequence[str], name: str | None = None, subdir: str | None = None) -> None:
         self.runs = find_runs(run if isinstance(run, str) else list(run))
         self.name, self.subdir = name, subdir
 
@@ -206,7 +212,7 @@ class CheckpointSource(PolicySource):
             label = run_label(cfg)  # rows are grouped by the traffic trained among: "A (mixed)"
             out.append(Candidate(
                 name=self.name or label, actor=GreedyActor(net),
-                env=cfg.get("env") or ckpt_env, out_dir=run / self.subdir,
+                env=cfg.get("env") or ckpt_env, out_dir=run / (self.subdir or DEFAULT_SUBDIR),
                 meta={"kind": "checkpoint", "run": str(run), "mode": mode,
                       "train_seed": cfg.get("seed"), "unit": f"seed {cfg.get('seed')}"}))
         return out

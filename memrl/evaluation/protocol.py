@@ -114,6 +114,24 @@ def protocol_id(protocol: ProtocolConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
+def traffic_type(opponent: Any) -> str:
+    """The opponent type of a protocol's ``opponent`` (a type name or an ``env.opponent`` node)."""
+    return str(opponent.get("type", "constant") if isinstance(opponent, Mapping) else opponent)
+
+
+def traffic_tag(opponent: Any) -> str:
+    """A protocol's other cars as a folder suffix: '' for the paper's constant-speed traffic,
+    else the opponent type (``mixed``, ``learned``)."""
+    kind = traffic_type(opponent)
+    return "" if kind == "constant" else kind
+
+
+def suffixed(name: str, tag: str) -> str:
+    """``name`` for constant test traffic, ``name_<tag>`` for other traffic (``eval``,
+    ``eval_mixed``: where a run's evaluation under that traffic goes)."""
+    return f"{name}_{tag}" if tag else name
+
+
 def closing_or_none(kind: int, value: float) -> float | None:
     """A closing speed as an :class:`EpisodeRecord` holds it: None without a crash (kind 0)."""
     return None if int(kind) == 0 else float(value)

@@ -17,30 +17,13 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.evaluation.protocol import ProtocolConfig, protocol_id
+from memrl.evaluation.protocol import ProtocolConfig, protocol_id, suffixed, traffic_tag
 from memrl.evaluation.results import EVAL_JSON, EvalResult, read_result
 
 log = logging.getLogger(__name__)
 
 STAGE1_SUFFIX = " stage 1"
 """Row label of a mode B row's stage-1 weights: ``B stage 1``."""
-
-
-def traffic_type(opponent: Any) -> str:
-    """The opponent type of a protocol's ``opponent`` (a type name or an ``env.opponent`` node)."""
-    return str(opponent.get("type", "constant") if isinstance(opponent, Mapping) else opponent)
-
-
-def traffic_tag(opponent: Any) -> str:
-    """A protocol's other cars as a folder suffix: '' for the paper's constant-speed traffic,
-    else the opponent type (``mixed``, ``learned``)."""
-    kind = traffic_type(opponent)
-    return "" if kind == "constant" else kind
-
-
-def suffixed(name: str, tag: str) -> str:
-    """``name`` for constant test traffic, ``name_<tag>`` for other traffic."""
-    return f"{name}_{tag}" if tag else name
 
 
 @dataclass

@@ -23,9 +23,10 @@ from omegaconf import OmegaConf
 from memrl.evaluation import stats, tables
 from memrl.evaluation.crashes import crash_section
 from memrl.evaluation.periodic import PERIODIC_CSV
+from memrl.evaluation.protocol import suffixed, traffic_tag, traffic_type
 from memrl.evaluation.results import EvalResult
 from memrl.modes import MODES, by_label
-from memrl.studies.evaluation import STAGE1_SUFFIX, suffixed, traffic_tag, traffic_type
+from memrl.studies.evaluation import STAGE1_SUFFIX
 from memrl.studies.grid import Cell
 from memrl.studies.traffic import traffic_section
 
