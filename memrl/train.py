@@ -94,7 +94,7 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
     """
     from memrl.dqn.loop import Trainer
     from memrl.loggers import check_backend, open_logger
-    from memrl.provenance import record_provenance
+    from memrl.provenance import auto_precision_change, read_provenance, record_provenance
     from memrl.run_lock import run_lock
 
     check_train(cfg)  # every value, the env config and the named folders, before any write
@@ -129,6 +129,9 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
                     remove_new_entries(run_dir, before)
                 raise
             record_provenance(run_dir, "start" if fresh else "resume")
+            if cfg.resume and str(cfg.agent.precision) == "auto" and (
+                    change := auto_precision_change(read_provenance(run_dir))):
+                log.warning(change)
             with signals.deferred():  # a signal stops at the loop's next checkpoint
                 try:
                     summary = trainer.run()

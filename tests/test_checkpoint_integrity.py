@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import json
+import platform
 import shutil
 import subprocess
 
 import pytest
 
 from memrl.dqn import checkpoint as ckpt
+from memrl.dqn.learner import native_bf16
 from memrl.errors import is_user_error, one_line
-from memrl.provenance import PROVENANCE_FILE
+from memrl.provenance import PROVENANCE_FILE, auto_precision_change, cpu_model
 from memrl.train import train
 from tests.helpers import TINY
 
@@ -105,4 +107,34 @@ def test_a_run_records_its_provenance(finished_run):
     for name in ("torch", "torchrl", "tensordict", "hydra-core", "gymnasium", "highway-env"):
         assert entry["versions"][name], name
     assert entry["machine"]["cpu_count"] >= 1 and entry["machine"]["platform"]
+    assert entry["machine"]["cpu_model"] == cpu_model()
+    assert entry["machine"]["native_bf16"] is native_bf16()  # what agent.precision=auto trained in
     assert entry["time"].endswith("+00:00")
+
+
+def test_cpu_model_is_read_from_cpuinfo(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: Intel(R) Xeon(R) Processor\n")
+    assert cpu_model(info) == "Intel(R) Xeon(R) Processor"
+    assert cpu_model(tmp_path / "absent") == (platform.processor() or platform.machine())
+
+
+def test_a_resume_on_a_cpu_with_other_native_bf16_is_logged(compose_cfg, finished_run, tmp_path, caplog):
+    """precision=auto follows the CPU: a run carried to a machine that differs says so once."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    entries = json.loads((run / PROVENANCE_FILE).read_text())
+    entries[0]["machine"].update(native_bf16=not native_bf16(), cpu_model="elsewhere")
+    (run / PROVENANCE_FILE).write_text(json.dumps(entries))
+    with caplog.at_level("WARNING", logger="memrl.train"):
+        train(compose_cfg("train", TINY + ["total_episodes=3", f"resume={run}"]))
+    was, now = ("bfloat16", "float32") if not native_bf16() else ("float32", "bfloat16")
+    [line] = [r.getMessage() for r in caplog.records if "agent.precision=auto" in r.getMessage()]
+    assert line.startswith(f"agent.precision=auto: this run started with its conv trunk in {was} (elsewhere)")
+    assert f"goes on in {now} on this CPU ({cpu_model()})" in line
+    assert [e["event"] for e in json.loads((run / PROVENANCE_FILE).read_text())] == ["start", "resume"]
+    entries[0]["machine"]["native_bf16"] = native_bf16()  # the same CPU kind: nothing to say
+    assert auto_precision_change([entries[0], entries[0]]) is None
+    assert auto_precision_change([entries[0]]) is None
+    del entries[0]["machine"]["native_bf16"]  # written before the key: nothing to compare
+    assert auto_precision_change([entries[0], {"machine": {"native_bf16": True}}]) is None
