@@ -275,6 +275,31 @@ def test_example_dataset_is_recorded_once_then_reused(tmp_path, monkeypatch):
     assert load_demos(path, env).shape == (60,)
 
 
+def test_example_follows_the_episodes_it_draws_and_is_recorded_among_constant_cars(tmp_path, monkeypatch):
+    """The cache name covers the episode keys the recording draws with (two envs that draw other
+    episodes do not share a dataset); the training traffic is not among them: the example is
+    recorded among constant-speed cars, so a mixed-traffic run never loads the pool for it."""
+    import memrl.data.recording as recording
+
+    recipe = {**ONE_EPISODE, "env": {"vehicles_count": 2, "initial_lane": "non_goal"}}
+    env = {"duration": 60}
+    path = example_demos_path(env, tmp_path, recipe)
+    assert example_demos_path({**env, "other_speed": [7.0, 9.0]}, tmp_path, recipe) != path
+    assert example_demos_path({**env, "spawn_ahead": 80.0}, tmp_path, recipe) != path
+    assert example_demos_path({**env, "vehicles_count": [0, 1]}, tmp_path, recipe) == path  # the recipe's own
+    mixed = {**env, "opponent": {"type": "mixed", "pool": [str(tmp_path / "no_such_run")]}}
+    assert example_demos_path(mixed, tmp_path, recipe) == path
+    assert ensure_example_demos(mixed, tmp_path, recipe) == path  # no pool loaded: it does not exist
+    recorded = read_metadata(path)["env_config"]
+    assert recorded["opponent"]["type"] == "constant" and recorded["vehicles_count"] == 2
+
+    def no_recording(*args, **kwargs):
+        raise AssertionError("the constant-traffic run should reuse the same dataset")
+
+    monkeypatch.setattr(recording, "record_to_dataset", no_recording)
+    assert ensure_example_demos(env, tmp_path, recipe) == path
+
+
 def test_example_dataset_asked_for_twice_at_once_is_recorded_once(tmp_path, monkeypatch):
     """A study's parallel jobs on an empty cache: the second caller waits on the first one's
     lock and loads its dataset instead of recording it again beside it."""

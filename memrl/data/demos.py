@@ -50,7 +50,7 @@ from memrl.data.demo_checks import (
 )
 from memrl.data.frame_plan import Pixels, not_shifted_message, plan_write
 from memrl.data.frame_store import REFS_KEY
-from memrl.data.recipe import recipe_hash
+from memrl.data.recipe import recipe_hash, recipe_values
 from memrl.data.stride_plan import not_strided_message, plan_strided
 from memrl.envs.config import LaneChangeConfig, validate_env_config
 from memrl.envs.torchrl_env import env_kwargs
@@ -498,9 +498,36 @@ def default_data_dir() -> Path:
     return Path(os.environ.get("MEMRL_ROOT", ".")) / "outputs" / "data"
 
 
+RECORDING_OPPONENT = {"type": "constant"}
+"""Other cars of the scripted example dataset: constant speed, as the paper's prior knowledge,
+also for runs trained among learned or mixed traffic (one dataset for both, recorded without
+the pool's networks; other traffic: ``python -m memrl.record`` and ``mode.demos_path``)."""
+
+
+def recording_env(env_cfg: EnvCfg, recipe: Any) -> dict[str, Any]:
+    """The env a recipe records in: ``env_cfg`` with the recipe's episode keys on top and the
+    other cars at constant speed (:data:`RECORDING_OPPONENT`), whatever the training traffic."""
+    return {**dataclasses.asdict(_env_values(env_cfg)), **recipe_values(recipe)["env"],
+            "opponent": dict(RECORDING_OPPONENT)}
+
+
 def example_demos_path(env_cfg: EnvCfg = None, data_dir: str | os.PathLike | None = None,
                        recipe: Any = None) -> Path:
     """Where the cached scripted-driver example of this env config and recipe lives
-    (``recipe``: a :class:`memrl.data.recipe.DemoRecipe` or its values; None: the default)."""
+    (``recipe``: a :class:`memrl.data.recipe.DemoRecipe` or its values; None: the default).
+
+    The name holds the env config's hash (what a transition means), the recipe's, and that of
+    the episode keys it records with (:func:`recording_env`): two training envs that draw
+    other episodes (``env.other_speed``, ``env.spawn_gap`` ...) get datasets of their own."""
     folder = Path(data_dir) if data_dir is not None else default_data_dir()
-    return folder / f"example_scripted_{env_config_hash(env_cfg)[:12]}_{recipe_hash(recipe)[:8]}"
+    meaning, episodes = env_config_hash(env_cfg), episode_keys_hash(recording_env(env_cfg, recipe))
+    return folder / f"example_scripted_{meaning[:12]}_{recipe_hash(recipe)[:8]}_{episodes[:8]}"
+
+
+def episode_keys_hash(env_cfg: EnvCfg) -> str:
+    """sha256 of the :data:`EPISODE_KEYS` values that decide which episodes a recording draws
+    (``num_envs`` and ``scene``, which do not, left out)."""
+    values = dataclasses.asdict(_env_values(env_cfg))
+    drawn = {k: values[k] for k in EPISODE_KEYS if k not in ("num_envs", "scene")}
+    text = json.dumps(_canonical(drawn), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()

@@ -19,7 +19,14 @@ from filelock import FileLock
 from tensordict import TensorDict
 from tqdm import tqdm
 
-from memrl.data.demos import DemoDatasetError, EnvCfg, example_demos_path, load_demos, save_demos
+from memrl.data.demos import (
+    DemoDatasetError,
+    EnvCfg,
+    example_demos_path,
+    load_demos,
+    recording_env,
+    save_demos,
+)
 from memrl.data.recipe import recipe_error, recipe_values
 from memrl.data.sittings import Plan, clean_stale, write_progress
 from memrl.data.transitions import to_transitions
@@ -303,7 +310,7 @@ def record_recipe(env_cfg: EnvCfg, recipe: Any, path: str | os.PathLike, *,
     r = recipe_values(recipe)
     if (bad := recipe_error(r)) is not None:
         raise ValueError(f"demo recipe '{bad[0]}': {bad[1]}")
-    env = {**env_config_values(env_cfg), **r["env"]}
+    env = recording_env(env_cfg, r)
     return record_to_dataset(
         env, ScriptedDriver(**r["driver"]), path, episodes=r["episodes"], seed=r["seed"],
         keep_stable=True, tail_steps=r["tail_steps"], action_noise=float(r["action_noise"]),
