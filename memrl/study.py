@@ -31,13 +31,13 @@ from memrl.configs import register_configs
 from memrl.errors import config_error
 from memrl.modes import MODES, by_label
 from memrl.schemas import check_study
+from memrl.studies.record import STUDY_JSON, read_record, record_lock, write_record
 
 if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
     from memrl.studies.grid import Cell, Outcome
 
 log = logging.getLogger(__name__)
 
-STUDY_JSON = "study.json"
 """The study's own record: the grid and the train overrides it was made with."""
 
 
@@ -98,17 +98,23 @@ def check_record(folder: Path, cfg: DictConfig) -> None:
     A call may leave recorded variants out (as it may leave out seeds); a new variant, or one
     with other overrides, is a change. The record keeps every variant ever run.
     """
+    with record_lock(folder) as file:
+        doc = read_record(file)
+        write_record(file, checked_record(doc, folder, cfg))
+
+
+def checked_record(doc: dict[str, Any], folder: Path, cfg: DictConfig) -> dict[str, Any]:
+    """:func:`check_record`'s checks of this call against the record ``doc``; the new record
+    (keys this function does not know, e.g. ``extended``, kept)."""
     s = cfg.study
-    file = folder / STUDY_JSON
     now = [str(o) for o in s.train_overrides]
     variants = variants_of(cfg)
-    doc = json.loads(file.read_text()) if file.is_file() else {}
     before = doc.get("train_overrides", now)
     if before != now and not s.allow_changes:
         raise config_error("study.train_overrides", f"the study {folder} was made with {before}, this "
                            f"call gives {now}; give the same, another study.dir, or study.allow_changes=true "
                            "(finished runs are then kept as they are)")
-    known: dict[str, list[str]] = doc.get("variants", {}) if file.is_file() else dict(variants)
+    known: dict[str, list[str]] = doc.get("variants", {}) if doc else dict(variants)  # no record: none known
     changed = {k: v for k, v in variants.items() if known.get(k) != v}
     if changed and not s.allow_changes:
         made = ", ".join(f"{k}: {v}" for k, v in known.items()) or "no variants"
@@ -123,11 +129,9 @@ def check_record(folder: Path, cfg: DictConfig) -> None:
     if changed:
         history.append({"key": "study.variants", "from": {k: known[k] for k in changed if k in known},
                         "to": changed, "at": stamp})
-    record = {"train_overrides": now, "variants": {**known, **variants}, "modes": list(s.modes),
-              "seeds": list(s.seeds), "opponents": list(s.opponents), "baselines": list(s.baselines),
-              "protocol": OmegaConf.to_container(cfg.protocol, resolve=True), "changes": history}
-    folder.mkdir(parents=True, exist_ok=True)
-    file.write_text(json.dumps(record, indent=2))
+    return {**doc, "train_overrides": now, "variants": {**known, **variants}, "modes": list(s.modes),
+            "seeds": list(s.seeds), "opponents": list(s.opponents), "baselines": list(s.baselines),
+            "protocol": OmegaConf.to_container(cfg.protocol, resolve=True), "changes": history}
 
 
 def _quote(items: list[str]) -> str:
@@ -274,7 +278,7 @@ def study_status(cfg: DictConfig) -> list[str]:
     folder = Path(str(cfg.study.dir))
     lines = [f"study {cfg.study.name} ({folder})"]
     record = folder / STUDY_JSON
-    made = json.loads(record.read_text()).get("train_overrides") if record.is_file() else None
+    made = read_record(record).get("train_overrides")
     if made is not None and made != [str(o) for o in cfg.study.train_overrides]:
         lines.append(f"(the study was made with study.train_overrides={made}; the budgets below "
                      "are this call's)")

@@ -326,12 +326,58 @@ def test_changing_the_train_overrides_of_a_study_is_refused(tmp_path, compose_cf
     with pytest.raises(ConfigError, match="study.train_overrides") as info:
         study(changed)
     assert "\n" not in str(info.value) and "allow_changes" in str(info.value)
-    assert sorted(p.name for p in folder.iterdir()) == ["study.json"]  # nothing trained
+    assert sorted(p.name for p in folder.iterdir()) == [".study.json.lock", "study.json"]  # nothing trained
     allowed = compose_cfg("study", [*study_overrides(folder, [*TRAIN, "agent.lr=0.001"]),
                                     "study.allow_changes=true"])
     check_record(folder, allowed)
     doc = json.loads((folder / "study.json").read_text())
     assert doc["train_overrides"][-1] == "agent.lr=0.001" and len(doc["changes"]) == 1
+
+
+def test_a_damaged_study_record_is_refused_in_one_line_and_kept(tmp_path, compose_cfg):
+    from memrl.errors import UserError, one_line
+    from memrl.study import check_record
+
+    folder = tmp_path / "s"
+    check_record(folder, compose_cfg("study", study_overrides(folder)))
+    record = folder / "study.json"
+    whole = record.read_text()
+    record.write_text(whole[: len(whole) // 2])  # as a reader saw a record written in place
+    with pytest.raises(UserError) as info:
+        check_record(folder, compose_cfg("study", study_overrides(folder)))
+    assert one_line(info.value).startswith(f"{record}: unreadable (") and "remove it" in str(info.value)
+    assert record.read_text() == whole[: len(whole) // 2]  # left for the user to restore
+    record.write_text("[1, 2]")
+    with pytest.raises(UserError, match="not a study record"):
+        check_record(folder, compose_cfg("study", study_overrides(folder)))
+
+
+def test_the_record_is_replaced_whole_under_the_folder_lock(tmp_path, compose_cfg, monkeypatch):
+    """Two study calls on one folder (one process per mode): the record is read and written
+    under the folder's lock, and replaced at once, never written in place."""
+    import os
+
+    from filelock import FileLock, Timeout
+
+    from memrl.study import check_record
+
+    folder = tmp_path / "s"
+    check_record(folder, compose_cfg("study", study_overrides(folder)))
+    old = (folder / "study.json").read_text()
+    seen = []
+    real = os.replace
+
+    def replace(src, dst):
+        seen.append(((folder / "study.json").read_text(), json.loads(open(src).read())["seeds"]))
+        with pytest.raises(Timeout):  # the call holds the lock while it writes
+            FileLock(folder / ".study.json.lock", timeout=0).acquire()
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    check_record(folder, compose_cfg("study", study_overrides(folder, seeds="[0,1,2]")))
+    assert seen == [(old, [0, 1, 2])]  # the old record whole until the new one replaced it
+    assert json.loads((folder / "study.json").read_text())["seeds"] == [0, 1, 2]
+    assert sorted(p.name for p in folder.iterdir()) == [".study.json.lock", "study.json"]  # no temp file left
 
 
 def test_train_overrides_reach_every_run_and_the_grid_keys_are_its_own(tmp_path, compose_cfg):
@@ -571,6 +617,7 @@ def test_a_study_continues_an_earlier_studys_runs_to_a_bigger_budget(tmp_path, c
     again = study(compose_cfg("study", [*study_overrides(tmp_path / "b", long, "[B]", seeds="[0]"), *extra,
                                         f"study.extend_from={first.dir}"]))
     assert again.extended == again.trained == again.resumed == [] and again.skipped == ["B_constant_s0"]
+    assert json.loads((ext.dir / "study.json").read_text())["extended"] == {"B_constant_s0": str(src)}  # kept
 
     refusals = [
         ([*long, "agent.lr=0.001"], str(first.dir), "agent.lr"),

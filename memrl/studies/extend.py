@@ -22,6 +22,7 @@ from pathlib import Path
 
 from memrl.errors import config_error
 from memrl.studies.grid import Cell
+from memrl.studies.record import read_record, record_lock, write_record
 
 log = logging.getLogger(__name__)
 
@@ -86,9 +87,10 @@ def extend(pairs: Sequence[tuple[Cell, Path]], record: Path) -> list[str]:
     ``record`` (``study.json``: ``"extended"``, run -> the folder it continues); returns the
     cells copied, which the grid then resumes."""
     if pairs:
-        doc = json.loads(record.read_text())
-        doc["extended"] = {**doc.get("extended", {}), **{cell.name: str(src) for cell, src in pairs}}
-        record.write_text(json.dumps(doc, indent=2))
+        with record_lock(record.parent):
+            doc = read_record(record)
+            doc["extended"] = {**doc.get("extended", {}), **{cell.name: str(src) for cell, src in pairs}}
+            write_record(record, doc)
     for cell, src in pairs:
         tmp = cell.run_dir.with_name(cell.run_dir.name + ".extending")
         shutil.rmtree(tmp, ignore_errors=True)
