@@ -57,7 +57,7 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
     if isinstance(source, CheckpointSource) and source.subdir is None:
         source.subdir = suffixed(DEFAULT_SUBDIR, traffic_tag(protocol.opponent))  # mixed cars: eval_mixed
-        policy_cfg["subdir"] = source.subdir  # type: ignore[index]
+        policy_cfg["subdir"] = source.subdir  # type: ignore[index,call-overload]
     candidates = source.candidates()
     resume = resumed(cfg, candidates) if cfg.get("resume") is not None else None
     if resume is not None:
