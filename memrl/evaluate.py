@@ -47,8 +47,8 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
         out_dir: folder for policies that are not training runs (default: Hydra's
             ``paths.output_dir``).
     """
-    from memrl.evaluation.policies import DEFAULT_SUBDIR, CheckpointSource
-    from memrl.evaluation.protocol import check_protocol, suffixed, traffic_tag
+    from memrl.evaluation.policies import CheckpointSource
+    from memrl.evaluation.protocol import check_protocol, eval_subdir
     from memrl.evaluation.session import evaluate_candidate, score_line
 
     check_evaluate(cfg)
@@ -56,7 +56,7 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
     source: PolicySource = instantiate_checked(cfg.policy)  # type: ignore[assignment]
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
     if isinstance(source, CheckpointSource) and source.subdir is None:
-        source.subdir = suffixed(DEFAULT_SUBDIR, traffic_tag(protocol.opponent))  # mixed cars: eval_mixed
+        source.subdir = eval_subdir(protocol.opponent)  # mixed cars: eval_mixed
         policy_cfg["subdir"] = source.subdir  # type: ignore[index,call-overload]
     candidates = source.candidates()
     resume = resumed(cfg, candidates) if cfg.get("resume") is not None else None

@@ -180,7 +180,7 @@ def study(cfg: DictConfig) -> StudyResult:
     Args:
         cfg: the composed ``study`` config.
     """
-    from memrl.evaluation.protocol import check_protocol
+    from memrl.evaluation.protocol import check_protocol, suffixed
     from memrl.modules.opponents import check_pool_views, pool_views
     from memrl.report import report, stats_config
     from memrl.schemas import check_train
@@ -208,7 +208,7 @@ def study(cfg: DictConfig) -> StudyResult:
     def evaluate(cell: Cell, into: ev.Evaluations) -> None:
         ev.evaluate_run(cell.run_dir, settings, into)
         if s.stage1 and by_label(cell.mode).pretrains:
-            ev.evaluate_stage1(cell.run_dir, folder / "stage1" / ev.suffixed(cell.name, tag), settings, into)
+            ev.evaluate_stage1(cell.run_dir, folder / "stage1" / suffixed(cell.name, tag), settings, into)
 
     def evaluate_early(cell: Cell) -> None:
         try:
@@ -232,11 +232,11 @@ def study(cfg: DictConfig) -> StudyResult:
         check_record(folder, cfg)
     finished = [c for c in grid if c.finished()]
 
-    out_dir = folder / ev.suffixed("test", tag) if tag else folder
+    out_dir = folder / suffixed("test", tag) if tag else folder
     evals = ev.Evaluations()
     for cell in finished:
         evaluate(cell, evals)
-    baselines = [folder / "baselines" / ev.suffixed(str(b), tag) for b in s.baselines]
+    baselines = [folder / "baselines" / suffixed(str(b), tag) for b in s.baselines]
     for name, place in zip(s.baselines, baselines, strict=True):
         ev.evaluate_baseline(str(name), grid[0].cfg.env, place, settings, evals)  # type: ignore[union-attr]
 

@@ -30,6 +30,7 @@ from omegaconf import OmegaConf
 from memrl.checkpoint import load_qnet
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.errors import load_run_config
+from memrl.evaluation.protocol import eval_subdir
 from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
 from memrl.modes import MODES
@@ -184,7 +185,7 @@ def run_label(cfg: dict[str, Any]) -> str:
     return row_label(label, str(traffic), str(variant) if variant else None)
 
 
-DEFAULT_SUBDIR = "eval"
+DEFAULT_SUBDIR = eval_subdir("constant")
 """A trained run's evaluation folder under the paper's constant-speed test cars."""
 
 

@@ -127,9 +127,15 @@ def traffic_tag(opponent: Any) -> str:
 
 
 def suffixed(name: str, tag: str) -> str:
-    """``name`` for constant test traffic, ``name_<tag>`` for other traffic (``eval``,
-    ``eval_mixed``: where a run's evaluation under that traffic goes)."""
+    """``name`` for constant test traffic, ``name_<tag>`` for other traffic."""
     return f"{name}_{tag}" if tag else name
+
+
+def eval_subdir(opponent: Any) -> str:
+    """A trained run's evaluation folder under test traffic ``opponent``: ``eval`` for the
+    paper's constant-speed cars, ``eval_<type>`` (``eval_mixed``) for other traffic; the same
+    for ``memrl.evaluate`` and the study."""
+    return suffixed("eval", traffic_tag(opponent))
 
 
 def closing_or_none(kind: int, value: float) -> float | None:

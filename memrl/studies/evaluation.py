@@ -17,7 +17,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.evaluation.protocol import ProtocolConfig, protocol_id, suffixed, traffic_tag
+from memrl.evaluation.protocol import ProtocolConfig, eval_subdir, protocol_id, traffic_tag
 from memrl.evaluation.results import EVAL_JSON, EvalResult, read_result
 
 log = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ def eval_folder(run: Path, settings: EvalSettings) -> Path:
     """Where a run's evaluation under the study's protocol goes: ``<run>/eval/``, or
     ``<run>/eval_<traffic>/`` for other test traffic (a later protocol of the same traffic
     replaces it)."""
-    return run / suffixed("eval", settings.tag)
+    return run / eval_subdir(settings.protocol.opponent)
 
 
 def evaluate_run(run: Path, settings: EvalSettings, out: Evaluations) -> None:
