@@ -50,10 +50,11 @@ class ReportFiles:
 
 
 def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
-    """Evaluate the trained runs under ``cfg.runs`` whose ``eval/eval.json`` is missing or was
-    made under another protocol."""
+    """Evaluate the trained runs under ``cfg.runs`` whose evaluation under ``cfg.protocol`` is
+    missing or was made under another protocol, in the folder ``memrl.evaluate`` and the study use
+    (``eval/``; ``eval_mixed/`` for mixed test traffic: :func:`~memrl.evaluation.protocol.eval_subdir`)."""
     from memrl.evaluation.policies import CheckpointSource
-    from memrl.evaluation.protocol import check_protocol, protocol_id
+    from memrl.evaluation.protocol import check_protocol, eval_subdir, protocol_id
     from memrl.evaluation.results import EVAL_JSON, read_result
     from memrl.evaluation.session import evaluate_candidate
 
@@ -62,7 +63,7 @@ def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
     done = []
     for item in cfg.runs:
         try:
-            source = CheckpointSource(str(item))
+            source = CheckpointSource(str(item), subdir=eval_subdir(protocol.opponent))
         except FileNotFoundError:
             continue  # no training run there (e.g. an evaluation folder)
         for cand in source.candidates():

@@ -136,6 +136,20 @@ def test_report_evaluates_runs_without_an_evaluation(tmp_path, compose_cfg):
     assert (run / "eval" / "eval.json").stat().st_mtime_ns == mtime
 
 
+def test_report_evaluates_mixed_test_traffic_into_eval_mixed(tmp_path, compose_cfg):
+    """Under protocol.opponent=mixed the missing evaluation goes where memrl.evaluate and the
+    study put it (eval_mixed/), and no eval/ folder is made or replaced."""
+    run = fake_run(tmp_path / "sweep", compose_cfg, mode="A", seed=4)
+    pool = fake_run(tmp_path / "pool", compose_cfg, seed=2)
+    mixed = f"protocol.opponent={{type:mixed,learned_fraction:0.5,pool:['{pool}'],epsilon:0.0}}"
+    cfg = compose_cfg("report", [f"runs=[{tmp_path / 'sweep'}]", *REPORT, "evaluate_missing=true", mixed,
+                                 "protocol.episodes=2", "protocol.duration=10", "workers=1", "fig5=false"])
+    files = report(cfg, out_dir=tmp_path / "out")
+    doc = json.loads((run / "eval_mixed" / "eval.json").read_text())
+    assert doc["protocol"]["opponent"]["type"] == "mixed" and not (run / "eval").exists()
+    assert "| A | 1 |" in files.markdown
+
+
 def test_report_needs_evaluations(tmp_path, compose_cfg):
     with pytest.raises(ValueError, match="runs"):
         report(compose_cfg("report", REPORT), out_dir=tmp_path)
