@@ -78,10 +78,12 @@ def evaluate(cfg: DictConfig, out_dir: Path | None = None) -> list[EvalResult]:
     return results
 
 
-def refuse_other_protocol(folder: Path | None, protocol: ProtocolConfig) -> None:
+def refuse_other_protocol(folder: Path | None, protocol: ProtocolConfig,
+                          remedy: str = "give policy.subdir=<another folder>, or overwrite=true "
+                          "to replace it") -> None:
     """Raise when ``folder`` holds an evaluation made under another protocol (e.g. a run's
     ``eval/`` on constant-speed cars when this one is in mixed traffic): evaluating would
-    replace it. An unreadable ``eval.json`` is replaced."""
+    replace it; ``remedy`` ends the message. An unreadable ``eval.json`` is replaced."""
     from dataclasses import asdict
 
     from memrl.errors import UserError
@@ -100,8 +102,7 @@ def refuse_other_protocol(folder: Path | None, protocol: ProtocolConfig) -> None
     keys = sorted(k for k in set(old.protocol) | set(new)
                   if k != "initial_lanes" and old.protocol.get(k) != new.get(k))
     raise UserError(f"{folder} holds an evaluation under another protocol (differs in: "
-                    f"{', '.join(keys) or 'its id'}); evaluating would replace it: give "
-                    f"policy.subdir=<another folder>, or overwrite=true to replace it")
+                    f"{', '.join(keys) or 'its id'}); evaluating would replace it: {remedy}")
 
 
 def resumed(cfg: DictConfig, candidates: list) -> EvalResult:

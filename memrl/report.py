@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
 from memrl.errors import config_error
-from memrl.evaluate import workers_of
+from memrl.evaluate import refuse_other_protocol, workers_of
 from memrl.schemas import check_report
 
 if TYPE_CHECKING:  # the evaluation stack (torch) loads on the first run, not for --help
@@ -50,9 +50,11 @@ class ReportFiles:
 
 
 def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
-    """Evaluate the trained runs under ``cfg.runs`` whose evaluation under ``cfg.protocol`` is
-    missing or was made under another protocol, in the folder ``memrl.evaluate`` and the study use
-    (``eval/``; ``eval_mixed/`` for mixed test traffic: :func:`~memrl.evaluation.protocol.eval_subdir`)."""
+    """Evaluate the trained runs under ``cfg.runs`` that have no evaluation under
+    ``cfg.protocol``, in the folder ``memrl.evaluate`` and the study use (``eval/``; ``eval_mixed/``
+    for mixed test traffic: :func:`~memrl.evaluation.protocol.eval_subdir`). A folder holding an
+    evaluation under another protocol is replaced only with ``overwrite=true``; otherwise the
+    report refuses, in one line, before evaluating anything."""
     from memrl.evaluation.policies import CheckpointSource
     from memrl.evaluation.protocol import check_protocol, eval_subdir, protocol_id
     from memrl.evaluation.results import EVAL_JSON, read_result
@@ -60,7 +62,7 @@ def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
 
     protocol = check_protocol(cfg.protocol)
     wanted = protocol_id(protocol)
-    done = []
+    todo = []
     for item in cfg.runs:
         try:
             source = CheckpointSource(str(item), subdir=eval_subdir(protocol.opponent))
@@ -71,9 +73,15 @@ def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
             existing = cand.out_dir / EVAL_JSON
             if existing.is_file() and read_result(existing).protocol_id == wanted:
                 continue
-            log.info("evaluating %s (%s)", cand.meta["run"], cand.name)
-            done.append(evaluate_candidate(cand, protocol, workers=workers_of(cfg),
-                                           batch=int(cfg.batch), progress=bool(cfg.progress)))
+            if not cfg.overwrite:
+                refuse_other_protocol(cand.out_dir, protocol, remedy="overwrite=true to replace it, "
+                                      "or evaluate_missing=false to report the evaluations there are")
+            todo.append(cand)
+    done = []
+    for cand in todo:
+        log.info("evaluating %s (%s)", cand.meta["run"], cand.name)
+        done.append(evaluate_candidate(cand, protocol, workers=workers_of(cfg),
+                                       batch=int(cfg.batch), progress=bool(cfg.progress)))
     return done
 
 

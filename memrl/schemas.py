@@ -340,6 +340,8 @@ class ReportSchema:
     runs: list[str] = spec(nonempty=True)
     """Folders to search (eval.json, episodes.csv + config.yaml below them)."""
     evaluate_missing: bool = MISSING
+    overwrite: bool = MISSING
+    """With ``evaluate_missing``: replace a run's evaluation made under another protocol."""
     workers: int = spec(ge=0)
     batch: int = spec(ge=1)
     progress: bool = MISSING

@@ -146,6 +146,7 @@ ROWS = [
     ("report", ["runs=[.]", "rollouts.fps=0"], "rollouts.fps"),
     ("report", ["runs=[.]", "fig5=sometimes"], "fig5"),
     ("report", ["runs=[.]", "evaluate_missing=often"], "evaluate_missing"),
+    ("report", ["runs=[.]", "overwrite=maybe"], "overwrite"),
     ("report", ["runs=[.]", "progress=maybe"], "progress"),
     ("report", ["runs=[.]", "debug=maybe"], "debug"),
     # deploy

@@ -136,6 +136,26 @@ def test_report_evaluates_runs_without_an_evaluation(tmp_path, compose_cfg):
     assert (run / "eval" / "eval.json").stat().st_mtime_ns == mtime
 
 
+def test_report_refuses_to_replace_an_evaluation_under_another_protocol(tmp_path, compose_cfg):
+    """evaluate_missing under another protocol: one line naming the folder and the differing
+    key, nothing evaluated or replaced; overwrite=true replaces it."""
+    from memrl.errors import UserError
+
+    run = fake_run(tmp_path / "sweep", compose_cfg, mode="A", seed=4)
+    base = [f"runs=[{tmp_path / 'sweep'}]", *REPORT, "evaluate_missing=true", "protocol.episodes=2",
+            "workers=1", "fig5=false"]
+    report(compose_cfg("report", [*base, "protocol.duration=10"]), out_dir=tmp_path / "out")
+    first = (run / "eval" / "eval.json").read_bytes()
+    longer = compose_cfg("report", [*base, "protocol.duration=12"])
+    with pytest.raises(UserError, match=r"eval holds an evaluation under another protocol \(differs in: "
+                       r"duration\); evaluating would replace it: overwrite=true"):
+        report(longer, out_dir=tmp_path / "out2")
+    assert (run / "eval" / "eval.json").read_bytes() == first and not (tmp_path / "out2").exists()
+    longer.overwrite = True
+    report(longer, out_dir=tmp_path / "out3")
+    assert json.loads((run / "eval" / "eval.json").read_text())["protocol"]["duration"] == 12
+
+
 def test_report_evaluates_mixed_test_traffic_into_eval_mixed(tmp_path, compose_cfg):
     """Under protocol.opponent=mixed the missing evaluation goes where memrl.evaluate and the
     study put it (eval_mixed/), and no eval/ folder is made or replaced."""
