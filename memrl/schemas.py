@@ -341,7 +341,7 @@ class ReportSchema:
     """Folders to search (eval.json, episodes.csv + config.yaml below them)."""
     evaluate_missing: bool = MISSING
     overwrite: bool = MISSING
-    """With ``evaluate_missing``: replace a run's evaluation made under another protocol."""
+    """Let evaluate_missing replace a run's evaluation made under another protocol (false: refuse)."""
     workers: int = spec(ge=0)
     batch: int = spec(ge=1)
     progress: bool = MISSING
