@@ -38,8 +38,6 @@ if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
 
 log = logging.getLogger(__name__)
 
-"""The study's own record: the grid and the train overrides it was made with."""
-
 
 @dataclass
 class StudyResult:

@@ -20,6 +20,7 @@ from filelock import FileLock
 from memrl.errors import UserError
 
 STUDY_JSON = "study.json"
+"""The study's own record: the grid and the train overrides it was made with."""
 
 
 def read_record(file: Path) -> dict[str, Any]:
