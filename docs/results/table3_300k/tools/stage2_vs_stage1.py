@@ -1,5 +1,6 @@
 """S&R (non-goal: survived and reached) of B's final and stage-1 weights per seed, and P(final > stage 1)
-with its 95% stratified-bootstrap interval (memrl.evaluation.bootstrap): python stage2_vs_stage1.py [study dir]."""
+with its 95% stratified-bootstrap interval (memrl.evaluation.bootstrap):
+python stage2_vs_stage1.py [study dir] [traffic: constant | mixed] [test: eval | eval_mixed]."""
 import csv
 import sys
 from pathlib import Path
@@ -15,11 +16,14 @@ def sr(folder: Path) -> int:
 
 
 study = Path(sys.argv[1] if len(sys.argv) > 1 else "studies/table3_300k_v3")
+traffic = sys.argv[2] if len(sys.argv) > 2 else "constant"
+test = sys.argv[3] if len(sys.argv) > 3 else "eval"
+suffix = test.removeprefix("eval")  # stage-1 tests in mixed traffic: stage1/<run>_mixed
 final, first = [], []
-for run in sorted((study / "runs").glob("B_constant_s*")):
-    if (run / "eval" / "episodes.csv").is_file() and (study / "stage1" / run.name / "episodes.csv").is_file():
-        final.append(sr(run / "eval"))
-        first.append(sr(study / "stage1" / run.name))
+for run in sorted((study / "runs").glob(f"B_{traffic}_s*")):
+    if (run / test / "episodes.csv").is_file() and (study / "stage1" / (run.name + suffix) / "episodes.csv").is_file():
+        final.append(sr(run / test))
+        first.append(sr(study / "stage1" / (run.name + suffix)))
         print(f"{run.name}: stage 1 {first[-1]}, final {final[-1]}, {final[-1] - first[-1]:+d}")
 x, y = np.array(final, float)[:, None], np.array(first, float)[:, None]
 p = float(probability_of_improvement(x, y))
