@@ -21,12 +21,14 @@ test = sys.argv[3] if len(sys.argv) > 3 else "eval"
 suffix = test.removeprefix("eval")  # stage-1 tests in mixed traffic: stage1/<run>_mixed
 final, first = [], []
 for run in sorted((study / "runs").glob(f"B_{traffic}_s*")):
-    if (run / test / "episodes.csv").is_file() and (study / "stage1" / (run.name + suffix) / "episodes.csv").is_file():
+    stage1 = study / "stage1" / (run.name + suffix)
+    if (run / test / "episodes.csv").is_file() and (stage1 / "episodes.csv").is_file():
         final.append(sr(run / test))
-        first.append(sr(study / "stage1" / (run.name + suffix)))
+        first.append(sr(stage1))
         print(f"{run.name}: stage 1 {first[-1]}, final {final[-1]}, {final[-1] - first[-1]:+d}")
 x, y = np.array(final, float)[:, None], np.array(first, float)[:, None]
 p = float(probability_of_improvement(x, y))
 lo, hi = interval([x, y], probability_of_improvement, 0.95, 2000, np.random.default_rng(0))
-print(f"higher on {sum(a > b for a, b in zip(final, first))} of {len(final)} seeds; "
+higher = sum(a > b for a, b in zip(final, first, strict=True))
+print(f"higher on {higher} of {len(final)} seeds; "
       f"mean {np.mean(final):.1f} vs {np.mean(first):.1f}; P(final > stage 1) = {p:.2f} [{lo:.2f}, {hi:.2f}]")

@@ -29,7 +29,8 @@ def training(run: Path) -> str:
 if __name__ == "__main__":
     study = Path(sys.argv[1] if len(sys.argv) > 1 else "studies/table3_300k_v3")
     for run in sorted((study / "runs").iterdir()):
-        for sub in sorted(p for p in run.iterdir() if p.name.startswith("eval") and (p / "episodes.csv").is_file()):
+        tests = (p for p in run.iterdir() if p.name.startswith("eval") and (p / "episodes.csv").is_file())
+        for sub in sorted(tests):
             print(f"| {run.name} {sub.name} | {figures(sub)} | "
                   f"{training(run) if (run / 'summary.json').is_file() else ''} |")
         for st in sorted(study.glob(f"stage1*/{run.name}*")):
