@@ -116,7 +116,7 @@ def bench(cfg: DictConfig, out_dir: Path) -> dict[str, Any]:
     return result
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="bench")
+@hydra.main(version_base="1.3", config_path="conf", config_name="bench")
 def main(cfg: DictConfig) -> None:
     run_task(lambda c: bench(c, Path(c.paths.output_dir)), cfg)
 

@@ -22,7 +22,9 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+import memrl
+
+CONF_DIR = memrl.CONF_DIR
 
 HEADER = """\
 # Configuration reference

@@ -34,7 +34,7 @@ def dagger(cfg: DictConfig) -> Path:
     return out
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="dagger")
+@hydra.main(version_base="1.3", config_path="conf", config_name="dagger")
 def main(cfg: DictConfig) -> None:
     run_task(dagger, cfg)
 

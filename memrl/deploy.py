@@ -129,7 +129,7 @@ def deploy(cfg: DictConfig, out_dir: Path, policy: DrivingPolicy | None = None) 
     return DeploySummary(metrics, episodes, json_path, png)
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="deploy")
+@hydra.main(version_base="1.3", config_path="conf", config_name="deploy")
 def main(cfg: DictConfig) -> None:
     run_task(lambda c: deploy(c, Path(c.paths.output_dir)), cfg)
 

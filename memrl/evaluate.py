@@ -131,7 +131,7 @@ def resumed(cfg: DictConfig, candidates: list) -> EvalResult:
     return old
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     run_task(evaluate, cfg)
 

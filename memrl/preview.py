@@ -74,7 +74,7 @@ def preview(cfg: DictConfig, out_dir: Path) -> PreviewFiles:
     return files
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="preview")
+@hydra.main(version_base="1.3", config_path="conf", config_name="preview")
 def main(cfg: DictConfig) -> None:
     run_task(lambda c: preview(c, Path(c.paths.output_dir)), cfg)
 

@@ -157,7 +157,7 @@ def _example(cfg: DictConfig, start: float) -> RecordSummary:
     return summary
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="record")
+@hydra.main(version_base="1.3", config_path="conf", config_name="record")
 def main(cfg: DictConfig) -> None:
     run_task(record, cfg)
 

@@ -251,7 +251,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     return files
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="report")
+@hydra.main(version_base="1.3", config_path="conf", config_name="report")
 def main(cfg: DictConfig) -> None:
     run_task(report, cfg)
 

@@ -302,6 +302,9 @@ def check_evaluate(cfg: DictConfig) -> None:
     if OmegaConf.is_missing(cfg.policy, "run") if "run" in cfg.policy.keys() else False:
         raise config_error("policy.run", "missing: give policy.run=<run or multirun folder>, "
                            "or another policy (policy=scripted|random|human)")
+    for key in cfg.policy.keys():  # the other policies' mandatory keys (policy=python: target)
+        if OmegaConf.is_missing(cfg.policy, key):
+            raise config_error(f"policy.{key}", f"missing: give policy.{key}=... (conf/policy/)")
     run = cfg.policy.get("run") if "run" in cfg.policy.keys() else None
     runs = [] if run is None else ([run] if isinstance(run, str) else list(run))
     for item in runs:

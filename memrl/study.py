@@ -283,7 +283,7 @@ def study_status(cfg: DictConfig) -> list[str]:
     return lines + status_table(cells(cfg.study, folder / "runs"))
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="study")
+@hydra.main(version_base="1.3", config_path="conf", config_name="study")
 def main(cfg: DictConfig) -> None:
     if cfg.study.status:
         lines = run_task(study_status, cfg)

@@ -145,7 +145,7 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
     return summary
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> None:
     run_task(train, cfg)
 

@@ -18,9 +18,10 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+import memrl
 from memrl.dqn.loop import Trainer
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = memrl.CONF_DIR
 
 
 def compose_train(overrides: list[str]) -> DictConfig:

@@ -28,15 +28,15 @@ import os
 import statistics
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+import memrl
 from memrl.dqn.config import AgentConfig
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = memrl.CONF_DIR
 OPTIONS = ("threads", "channels_last", "compile", "pool_first", "precision")
 """The learner speed options of ``agent`` (``conf/agent/dqn.yaml``)."""
 LEARNING_OPTIONS: dict[str, dict[str, Any]] = {

@@ -19,7 +19,9 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
+import memrl
+
+CONF_DIR = str(memrl.CONF_DIR)
 
 
 def drive_greedy(qnet: Any, env_cfg: dict[str, Any], episodes: int) -> tuple[int, int, int]:

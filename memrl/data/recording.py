@@ -17,7 +17,6 @@ from typing import Any
 import torch
 from filelock import FileLock
 from tensordict import TensorDict
-from tqdm import tqdm
 
 from memrl.data.demos import (
     DemoDatasetError,
@@ -34,6 +33,7 @@ from memrl.envs.config import LaneChangeConfig
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
 from memrl.modules.policy import DrivingPolicy, FrameStack, PerturbedPolicy, PolicyModule, StopRecording
+from memrl.progress import progress_bar
 from memrl.stop import SignalGuard, Terminated, exit_status_of
 
 log = logging.getLogger(__name__)
@@ -144,7 +144,7 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
     duration = unwrap(env).cfg.duration
     rec = Recording(next_episode=start)
     try:
-        for i in tqdm(range(start, episodes), desc="record", unit="ep", disable=not progress):
+        for i in progress_bar(progress, iterable=range(start, episodes), desc="record", unit="ep"):
             if hasattr(policy, "progress"):
                 policy.progress = (i + 1, episodes, kept_before + len(rec.kept))
             td = env.reset(seed=seed + i)

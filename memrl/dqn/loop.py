@@ -46,6 +46,7 @@ from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
 from memrl.modes import mode_of
 from memrl.modules.qnet import arch_of
+from memrl.progress import drawn, progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +119,7 @@ class Trainer:
         self.budget = Budget(cfg.total_frames, cfg.total_episodes)
         self.self_play = SelfPlayPool(int(cfg.self_play_every or 0),
                                       self.collector.learned_controller(), out_dir, cfg.env)
-        self.records = RunRecords(out_dir, logger, echo=not cfg.progress)
+        self.records = RunRecords(out_dir, logger, echo=not drawn(cfg.progress))
         self.periodic = PeriodicEvaluation(cfg.eval, cfg.env, out_dir, self.records.log)
         self.counters = Counters(stage=self.spec.stages[0].name)
         self.stage1 = Stage1Progress()
@@ -345,10 +346,9 @@ class Trainer:
     def _progress_bar(self) -> tqdm:
         cfg, c = self.cfg, self.counters
         by_episodes = cfg.total_episodes is not None
-        return tqdm(total=int(cfg.total_episodes if by_episodes else cfg.total_frames),
-                    initial=c.episodes if by_episodes else c.frames, desc=f"train {self.mode}",
-                    unit="episodes" if by_episodes else "frames", disable=not cfg.progress,
-                    dynamic_ncols=True)
+        return progress_bar(cfg.progress, total=int(cfg.total_episodes if by_episodes else cfg.total_frames),
+                            initial=c.episodes if by_episodes else c.frames, desc=f"train {self.mode}",
+                            unit="episodes" if by_episodes else "frames")
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self) -> None:

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from memrl.envs.crash import kind_name
 from memrl.envs.lane_change import LaneChangeEnv
@@ -34,6 +33,7 @@ from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_j
 from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord, closing_or_none
 from memrl.modules.policy import FrameStack, StopRecording
+from memrl.progress import progress_bar
 from memrl.stop import Terminated, exit_status_of
 from memrl.workers import stopped_with_parent, worker_start
 
@@ -157,7 +157,7 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
             ``tensor_policy`` actors on jobs it can run (:func:`engine_can_run`).
     """
     total = sum(len(j.episodes) for j in jobs)
-    bar = tqdm(total=total, desc=desc, unit="ep", disable=not progress, dynamic_ncols=True)
+    bar = progress_bar(progress, total=total, desc=desc, unit="ep")
     out = JobResult()
     use_engine = actor.tensor_policy and all(engine_can_run(j) for j in jobs) if engine is None else engine
     if use_engine:

@@ -24,13 +24,14 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+import memrl
 from memrl.modes import by_label
 from memrl.signals import Interrupted
 from memrl.workers import stopped_with_parent, worker_start
 
 log = logging.getLogger(__name__)
 
-CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
+CONF_DIR = str(memrl.CONF_DIR)
 CELL_DEFAULTS = ["progress=false"]
 """Overrides of every cell before the user's (no progress bars from parallel runs)."""
 
