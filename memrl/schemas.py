@@ -71,7 +71,8 @@ class TrainSchema:
     checkpoint_every: int = spec(ge=1)
     """Episodes between checkpoints."""
     progress: bool = MISSING
-    """tqdm progress bar."""
+    """tqdm progress bar, drawn only on a terminal (else, as with false, a log line every
+    ``log_every`` updates)."""
     resume: str | None = MISSING
     """A run folder to continue from its last checkpoint."""
     variant: str | None = None

@@ -212,9 +212,11 @@ def test_the_worked_example_puts_an_sb3_row_beside_memrls_in_a_report(run_and_en
     evaluate_with(compose_cfg, [f"policy.run={run}"], out=tmp_path / "ref")
     evaluate_with(compose_cfg, ["policy=sb3", f"policy.path={model}"], tool.ENV, tmp_path / "sb3" / "eval")
     files = report(compose_cfg("report", [f"runs=[{run},{tmp_path / 'sb3' / 'eval'}]", "evaluate_missing=false",
-                                          "rollouts.rows=[]", "progress=false", "n_resamples=200", "fig5=false"]),
+                                          "rollouts.rows=[SB3 DQN]", "rollouts.video=false",
+                                          "progress=false", "n_resamples=200", "fig5=false"]),
                    out_dir=tmp_path / "report")
     with files.table_csv.open() as f:
         methods = {r["method"] for r in csv.DictReader(f)}
     assert methods == {"Default", "SB3 DQN"}
     assert "| SB3 DQN |" in files.markdown
+    assert [p.name for p in files.strips][:1] == ["fig7_SB3_DQN.png"]  # replayed from its eval.json

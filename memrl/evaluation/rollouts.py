@@ -48,9 +48,10 @@ class Capture:
 def actor_for(result: EvalResult) -> Actor | None:
     """The evaluated policy, rebuilt from ``eval.json`` (None for a human)."""
     kind = result.meta.get("kind")
-    if kind == "checkpoint":
-        return GreedyActor(load_qnet(result.meta["run"])[0])
-    if kind == "driver" and result.meta.get("policy_config"):
+    if kind == "checkpoint":  # the run as recorded, or the one holding this eval folder (moved runs)
+        run = Path(result.meta["run"])
+        return GreedyActor(load_qnet(run if run.exists() else result.path.parent)[0])
+    if kind in ("driver", "python", "sb3") and result.meta.get("policy_config"):  # made from config
         source: PolicySource = instantiate(result.meta["policy_config"])
         return source.candidates()[0].actor
     return None
