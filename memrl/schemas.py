@@ -23,6 +23,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from memrl.data.recipe import DemoRecipe
 from memrl.errors import UserError, config_error, load_run_config
 from memrl.fields import SEED_MAX, _element_ok, _valid, check_fields, spec  # noqa: F401
+from memrl.known_keys import check_known_keys
 
 
 def check_writable(path: str | os.PathLike, key: str) -> None:
@@ -129,6 +130,7 @@ def check_train(cfg: DictConfig) -> None:
     from memrl.dqn.config import check_train_config
     from memrl.modules.network_config import check_network
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(TrainSchema, cfg)
     check_train_config(cfg)
     check_network(cfg.network)
@@ -247,6 +249,7 @@ class RecordSchema:
 
 
 def check_record(cfg: DictConfig) -> None:
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(RecordSchema, cfg)
     check_env(cfg.env)
     if cfg.example:
@@ -296,6 +299,7 @@ class EvaluateSchema:
 def check_evaluate(cfg: DictConfig) -> None:
     from memrl.evaluation.protocol import check_protocol
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(EvaluateSchema, cfg)
     check_env(cfg.env)
     check_protocol(cfg.protocol)
@@ -372,6 +376,7 @@ def check_report(cfg: DictConfig) -> None:
     if not cfg.runs:
         raise config_error("runs", "give one or more run, multirun or evaluation folders, "
                            "e.g. runs=[outputs/train/multiruns/2026-11-22_10-00-00]")
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(ReportSchema, cfg)
     check_protocol(cfg.protocol)
     for pair in cfg.comparisons:
@@ -411,6 +416,7 @@ class DeploySchema:
 def check_deploy(cfg: DictConfig) -> None:
     from memrl.control.config import DeployConfig, check_deploy_config
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(DeploySchema, cfg)
     check_env(cfg.env)
     merged = OmegaConf.merge(OmegaConf.structured(DeployConfig), cfg.deploy)
@@ -547,6 +553,7 @@ class BenchSchema:
 
 
 def check_bench(cfg: DictConfig) -> None:
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(BenchSchema, cfg)
 
 
@@ -569,6 +576,7 @@ class PreviewSchema:
 
 
 def check_preview(cfg: DictConfig) -> None:
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(PreviewSchema, cfg)
     check_env(cfg.env)
 
@@ -665,6 +673,7 @@ def check_study(cfg: DictConfig) -> None:
     the grid's configs are composed)."""
     from memrl.evaluation.protocol import check_protocol
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(StudySchema, cfg)
     check_protocol(cfg.protocol)
     s = cfg.study
@@ -734,6 +743,7 @@ def check_dagger(cfg: DictConfig) -> None:
     """Every value of a dagger config: its own keys, the env, the learner's and the expert's."""
     from memrl.dqn.config import AgentConfig
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(DaggerSchema, cfg)
     check_fields(AgentConfig, cfg.agent, "agent.")
     if int(cfg.agent.threads) < 0:

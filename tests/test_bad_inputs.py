@@ -352,6 +352,8 @@ CLI_ROWS = [
     (["memrl.train", "seed=-1"], "'seed'"),
     (["memrl.train", "seed=abc"], "'seed'"),
     (["memrl.train", "seeed=1"], "seeed"),
+    (["memrl.train", "+agent.lrr=1"], "config 'agent.lrr': no such key (did you mean 'agent.lr'?)"),
+    (["memrl.train", "+foo=bar"], "config 'foo': no such key"),
     (["memrl.train", "env.vehicles_count=[5,0]"], "vehicles_count"),
     (["memrl.train", "env.lane_width=inf"], "lane_width"),
     (["memrl.train", "+mode=B", "mode.demos_path=/nonexistent/demos"], "mode.demos_path"),
