@@ -75,6 +75,9 @@ class TrainSchema:
     """tqdm progress bar."""
     resume: str | None = MISSING
     """A run folder to continue from its last checkpoint."""
+    overwrite: bool = MISSING
+    """A fresh start into a folder that holds a run (``hydra.run.dir=<run>``) replaces that run
+    (its files are removed first); false: refused, one line (resume it, or pick another folder)."""
     variant: str | None = None
     """A label only: the ``study.variants`` name of this run, set by ``memrl.study`` (row label
     ``B (cue)``); null: none."""
@@ -149,6 +152,11 @@ def check_train(cfg: DictConfig) -> None:
                            f"names), got {cfg.variant!r}")
     if cfg.resume is not None:
         check_resume(cfg)
+    else:  # the start checks know Hydra's folder before Hydra makes it; train() checks its own
+        from memrl.run_folder import check_new_run_folder, planned_run_dir
+
+        if (folder := planned_run_dir(cfg)) is not None:
+            check_new_run_folder(folder, bool(cfg.overwrite))
     from memrl.modes import mode_of
 
     mode = mode_of(cfg)

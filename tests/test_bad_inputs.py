@@ -73,6 +73,7 @@ ROWS = [
     ("train", ["checkpoint_every=0"], "checkpoint_every"),
     ("train", ["progress=maybe"], "progress"),
     ("train", ["resume=/nonexistent/run"], "resume"),
+    ("train", ["overwrite=perhaps"], "overwrite"),
     ("train", ["self_play_every=-1"], "self_play_every"),
     ("train", ["self_play_every=5"], "self_play_every"),
     ("train", ["debug=maybe"], "debug"),
