@@ -219,3 +219,33 @@ def check_stage1(file: Path) -> dict[str, Any]:
         raise CheckpointError(f"{file}: not a stage-1 record (no 'loss_module' weights)")
     return state
 
+
+def recorded_config(run: Path) -> tuple[dict[str, Any] | None, Path | None]:
+    """What a run recorded of its config besides ``config.yaml``, and where: ``mode``,
+    ``seed`` and ``variant`` from its newest complete checkpoint (manifest-checked), else the
+    mode and seed of the summary in ``checkpoints/final.pt`` (or ``summary.json``); ``env``:
+    the resolved env config ``final.pt`` stores. (None, None) when it recorded neither."""
+    import json
+
+    from memrl.dqn import checkpoint as ckpt
+
+    final = run / "checkpoints" / "final.pt"
+    state = load_weights(final, "Q-network weights") if final.is_file() else {}
+    env = state.get("env") or {}
+    try:
+        last: Path | None = ckpt.find(run)
+    except CheckpointError:  # no checkpoint kept (a copied run): the final network's records
+        last = None
+    if last is not None:
+        stored = ckpt.load_state(last)["config"]
+        return {"mode": stored.get("mode") or {}, "seed": stored.get("seed"),
+                "variant": stored.get("variant"), "env": env}, last / "state.pt"
+    summary, source = state.get("summary"), final
+    if not isinstance(summary, dict) and (run / "summary.json").is_file():
+        try:
+            summary, source = json.loads((run / "summary.json").read_text()), run / "summary.json"
+        except ValueError:  # garbled: not a record
+            summary = None
+    if not isinstance(summary, dict) or "mode" not in summary or "seed" not in summary:
+        return None, None
+    return {"mode": {"name": summary["mode"]}, "seed": summary["seed"], "env": env}, source
