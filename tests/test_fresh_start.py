@@ -66,3 +66,16 @@ def test_a_folder_without_a_run_is_taken(tmp_path, compose_cfg):
     (tmp_path / "notes.txt").write_text("mine\n")
     train(compose_cfg("train", [*TINY, "total_episodes=1"]), tmp_path)
     assert (tmp_path / "notes.txt").read_text() == "mine\n"
+
+
+def test_the_start_checks_know_the_folder_of_a_run_and_of_each_sweep_job(tmp_path):
+    from omegaconf import OmegaConf
+
+    from memrl.run_folder import planned_run_dir
+
+    hydra = {"run": {"dir": str(tmp_path / "run")}, "job": {"num": 1},
+             "sweep": {"dir": str(tmp_path / "sweep"), "subdir": "${hydra.job.num}"}}
+    assert planned_run_dir(OmegaConf.create({"hydra": {**hydra, "mode": "RUN"}})) == tmp_path / "run"
+    assert planned_run_dir(OmegaConf.create({"hydra": {**hydra, "mode": "MULTIRUN"}})) == \
+        tmp_path / "sweep" / "1"
+    assert planned_run_dir(OmegaConf.create({"seed": 0})) is None  # a Python caller's config
