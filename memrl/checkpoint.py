@@ -17,6 +17,7 @@ from memrl.envs.vehicles import N_ACTIONS
 from memrl.errors import load_run_config
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
 from memrl.modules.qnet import TABLE1, arch_of, build_qnet, input_frames
+from memrl.weights import load_weights, save_weights
 
 log = logging.getLogger(__name__)
 
@@ -34,12 +35,9 @@ def resolve(path: str | Path) -> Path:
 def save_qnet(path: str | Path, net: torch.nn.Module, env_cfg: dict[str, Any],
               extra: dict[str, Any] | None = None) -> Path:
     """Write a network in the ``final.pt`` format (``qnet`` weights, ``network`` architecture,
-    ``env`` config, extras)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    ``env`` config, extras), with its checksum (:func:`memrl.weights.save_weights`)."""
     weights = {k: v.cpu() for k, v in net.state_dict().items()}  # loads on any device
-    torch.save({"qnet": weights, "network": arch_of(net), "env": env_cfg, **(extra or {})}, path)
-    return path
+    return save_weights(path, {"qnet": weights, "network": arch_of(net), "env": env_cfg, **(extra or {})})
 
 
 def stored_arch(state: dict[str, Any]) -> dict[str, Any]:
@@ -124,12 +122,9 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     node), of that architecture. The reward (``env.reward``, ``env.shaping``) may differ, logged: stage 2
     fits its Q-values to its own run's reward, as it does to its own ``agent.gamma``."""
     file = stage1_file(path)
-    check_stage1(file)
+    state = check_stage1(file)
     if network is not None:
-        try:
-            stored = stored_arch(torch.load(file, weights_only=False, map_location="cpu"))
-        except Exception as err:  # truncated file, foreign pickle
-            raise CheckpointError(f"{file}: not a memrl stage-1 checkpoint ({err})") from err
+        stored = stored_arch(state)
         with torch.random.fork_rng(devices=[]):  # building draws initial weights
             ours = arch_of(build_qnet(network))
         if stored != ours:
@@ -158,12 +153,12 @@ def load_stage1_qnet(path: str | Path) -> torch.nn.Module:
     file), saved by the trainer as ``{"loss_module": DQNLoss state, "network": architecture,
     "stage1": ...}``; a file in the ``final.pt`` format (``{"qnet": ...}``) is read as such."""
     file = stage1_file(path)
+    state = load_weights(file, "stage-1 weights")
     try:
-        state = torch.load(file, weights_only=False, map_location="cpu")
         arch = stored_arch(state)
         weights = state["qnet"] if "qnet" in state else state["loss_module"]
-    except Exception as err:  # truncated file, foreign pickle
-        raise CheckpointError(f"{file}: not a memrl stage-1 checkpoint ({err})") from err
+    except Exception as err:  # a dict of something else
+        raise CheckpointError(f"{file}: not a memrl stage-1 checkpoint ({err!r})") from err
     net = _build(file, arch)
     if "qnet" not in state:
         weights = qnet_weights(weights, set(net.state_dict()))
@@ -174,11 +169,11 @@ def load_qnet(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     """The Q-network of a finished run (built from the architecture its file stores) and the
     env config it was trained with."""
     file = resolve(path)
+    state = load_weights(file, "Q-network weights")
     try:
-        state = torch.load(file, weights_only=False, map_location="cpu")
         arch, weights = stored_arch(state), state["qnet"]
-    except Exception as err:  # truncated file, foreign pickle
-        raise CheckpointError(f"{file}: not a memrl Q-network checkpoint ({err})") from err
+    except Exception as err:  # a dict of something else
+        raise CheckpointError(f"{file}: not a memrl Q-network checkpoint ({err!r})") from err
     return qnet_from(file, arch, weights), state.get("env", {})
 
 
@@ -214,14 +209,43 @@ def load_policy(path: str, epsilon: float = 0.0) -> DrivingPolicy:
     return GreedyQPolicy(net, epsilon)
 
 
-def check_stage1(file: Path) -> Path:
-    """Refuse a ``stage1.pt`` that is missing, truncated or not a stage-1 record, by name."""
+def check_stage1(file: Path) -> dict[str, Any]:
+    """Refuse a ``stage1.pt`` that is missing, truncated, altered (its checksum) or not a
+    stage-1 record, by name; its content when sound."""
     if not file.is_file():
         raise CheckpointError(f"{file}: missing (mode B's stage-1 weights; stage 2 starts from them)")
-    try:
-        state = torch.load(file, weights_only=False, map_location="cpu")
-    except Exception as err:  # torch raises several types for a truncated or foreign file
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(f"{file}: unreadable stage-1 weights ({first})") from None
-    if not isinstance(state, dict) or "loss_module" not in state:
+    state = load_weights(file, "stage-1 weights")
+    if "loss_module" not in state:
         raise CheckpointError(f"{file}: not a stage-1 record (no 'loss_module' weights)")
+    return state
+
+
+def recorded_config(run: Path) -> tuple[dict[str, Any] | None, Path | None]:
+    """What a run recorded of its config besides ``config.yaml``, and where: ``mode``,
+    ``seed`` and ``variant`` from its newest complete checkpoint (manifest-checked), else the
+    mode and seed of the summary in ``checkpoints/final.pt`` (or ``summary.json``); ``env``:
+    the resolved env config ``final.pt`` stores. (None, None) when it recorded neither."""
+    import json
+
+    from memrl.dqn import checkpoint as ckpt
+
+    final = run / "checkpoints" / "final.pt"
+    state = load_weights(final, "Q-network weights") if final.is_file() else {}
+    env = state.get("env") or {}
+    try:
+        last: Path | None = ckpt.find(run)
+    except CheckpointError:  # no checkpoint kept (a copied run): the final network's records
+        last = None
+    if last is not None:
+        stored = ckpt.load_state(last)["config"]
+        return {"mode": stored.get("mode") or {}, "seed": stored.get("seed"),
+                "variant": stored.get("variant"), "env": env}, last / "state.pt"
+    summary, source = state.get("summary"), final
+    if not isinstance(summary, dict) and (run / "summary.json").is_file():
+        try:
+            summary, source = json.loads((run / "summary.json").read_text()), run / "summary.json"
+        except ValueError:  # garbled: not a record
+            summary = None
+    if not isinstance(summary, dict) or "mode" not in summary or "seed" not in summary:
+        return None, None
+    return {"mode": {"name": summary["mode"]}, "seed": summary["seed"], "env": env}, source

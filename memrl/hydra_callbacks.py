@@ -54,6 +54,7 @@ def check_sweep(config: DictConfig) -> None:
     """Compose and check every job's config before any job starts (or the sweep folder is
     made); the first bad job is named with its overrides."""
     from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import open_dict
 
     from memrl.errors import UserError
     from memrl.schemas import CHECKS, check_writable
@@ -64,6 +65,8 @@ def check_sweep(config: DictConfig) -> None:
         if check is None:
             break
         job_cfg = loader.load_sweep_config(config, job)
+        with open_dict(job_cfg):  # as the launcher sets it: the job's folder (hydra.sweep.subdir)
+            job_cfg.hydra.job.num = num
         try:
             check(job_cfg)
         except Exception as err:

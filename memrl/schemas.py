@@ -23,6 +23,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from memrl.data.recipe import DemoRecipe
 from memrl.errors import UserError, config_error, load_run_config
 from memrl.fields import SEED_MAX, _element_ok, _valid, check_fields, spec  # noqa: F401
+from memrl.known_keys import check_known_keys
 
 
 def check_writable(path: str | os.PathLike, key: str) -> None:
@@ -75,6 +76,9 @@ class TrainSchema:
     ``log_every`` updates)."""
     resume: str | None = MISSING
     """A run folder to continue from its last checkpoint."""
+    overwrite: bool = MISSING
+    """A fresh start into a folder that holds a run (``hydra.run.dir=<run>``) replaces that run
+    (its files are removed first); false: refused, one line (resume it, or pick another folder)."""
     variant: str | None = None
     """A label only: the ``study.variants`` name of this run, set by ``memrl.study`` (row label
     ``B (cue)``); null: none."""
@@ -130,6 +134,7 @@ def check_train(cfg: DictConfig) -> None:
     from memrl.dqn.config import check_train_config
     from memrl.modules.network_config import check_network
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(TrainSchema, cfg)
     check_train_config(cfg)
     check_network(cfg.network)
@@ -148,6 +153,11 @@ def check_train(cfg: DictConfig) -> None:
                            f"names), got {cfg.variant!r}")
     if cfg.resume is not None:
         check_resume(cfg)
+    else:  # the start checks know Hydra's folder before Hydra makes it; train() checks its own
+        from memrl.run_folder import check_new_run_folder, planned_run_dir
+
+        if (folder := planned_run_dir(cfg)) is not None:
+            check_new_run_folder(folder, bool(cfg.overwrite))
     from memrl.modes import mode_of
 
     mode = mode_of(cfg)
@@ -248,6 +258,7 @@ class RecordSchema:
 
 
 def check_record(cfg: DictConfig) -> None:
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(RecordSchema, cfg)
     check_env(cfg.env)
     if cfg.example:
@@ -297,6 +308,7 @@ class EvaluateSchema:
 def check_evaluate(cfg: DictConfig) -> None:
     from memrl.evaluation.protocol import check_protocol
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(EvaluateSchema, cfg)
     check_env(cfg.env)
     check_protocol(cfg.protocol)
@@ -373,6 +385,7 @@ def check_report(cfg: DictConfig) -> None:
     if not cfg.runs:
         raise config_error("runs", "give one or more run, multirun or evaluation folders, "
                            "e.g. runs=[outputs/train/multiruns/2026-11-22_10-00-00]")
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(ReportSchema, cfg)
     check_protocol(cfg.protocol)
     for pair in cfg.comparisons:
@@ -412,6 +425,7 @@ class DeploySchema:
 def check_deploy(cfg: DictConfig) -> None:
     from memrl.control.config import DeployConfig, check_deploy_config
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(DeploySchema, cfg)
     check_env(cfg.env)
     merged = OmegaConf.merge(OmegaConf.structured(DeployConfig), cfg.deploy)
@@ -548,6 +562,7 @@ class BenchSchema:
 
 
 def check_bench(cfg: DictConfig) -> None:
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(BenchSchema, cfg)
 
 
@@ -570,6 +585,7 @@ class PreviewSchema:
 
 
 def check_preview(cfg: DictConfig) -> None:
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(PreviewSchema, cfg)
     check_env(cfg.env)
 
@@ -666,6 +682,7 @@ def check_study(cfg: DictConfig) -> None:
     the grid's configs are composed)."""
     from memrl.evaluation.protocol import check_protocol
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(StudySchema, cfg)
     check_protocol(cfg.protocol)
     s = cfg.study
@@ -735,6 +752,7 @@ def check_dagger(cfg: DictConfig) -> None:
     """Every value of a dagger config: its own keys, the env, the learner's and the expert's."""
     from memrl.dqn.config import AgentConfig
 
+    check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(DaggerSchema, cfg)
     check_fields(AgentConfig, cfg.agent, "agent.")
     if int(cfg.agent.threads) < 0:

@@ -95,19 +95,23 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
     from memrl.dqn.loop import Trainer
     from memrl.loggers import check_backend, open_logger
     from memrl.provenance import auto_precision_change, read_provenance, record_provenance
+    from memrl.run_folder import check_start_folder, claim_start_folder
     from memrl.run_lock import run_lock
 
     check_train(cfg)  # every value, the env config and the named folders, before any write
     check_backend(cfg.get("logger"))
     run_dir = Path(cfg.resume) if cfg.resume else Path(out_dir or cfg.paths.output_dir)
+    fresh = not cfg.resume
+    overwrite = bool(cfg.get("overwrite", False))
+    check_start_folder(run_dir, fresh, overwrite)  # a folder that holds a run: refused
     from memrl.modes import mode_of
 
     if demos is None and mode_of(cfg).needs_demos:
         demos = prior_knowledge(cfg)  # a bad dataset stops the run before its folder is made
-    fresh = not cfg.resume
     before = set(run_dir.iterdir()) if run_dir.is_dir() else None
     run_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(run_dir):
+        claim_start_folder(run_dir, fresh, overwrite)  # checked again; overwrite=true clears it
         stored = finished_summary(run_dir, cfg) if cfg.resume else None
         if stored is not None:
             log.info("%s finished earlier at this budget (%d frames, %d episodes): nothing to "

@@ -169,3 +169,19 @@ def built_stage_buffer(compose_cfg, demos, mode, stage: str, overrides: list[str
 
     cfg = compose_cfg("train", TINY + tiny_mode(mode) + overrides)
     return build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu")).buffer
+
+
+def tree_hashes(folder: Path) -> dict[str, str]:
+    """SHA-256 of every file below ``folder`` (hidden ones too) and ``<dir>`` for every folder:
+    equal before and after a refusal when it wrote, changed and removed nothing."""
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file()
+            else "<dir>" for p in sorted(folder.rglob("*"))}
+
+
+def flip_middle_byte(path: Path) -> None:
+    """One byte in the middle of ``path`` inverted; the size stays."""
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))

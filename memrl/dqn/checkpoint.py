@@ -19,7 +19,7 @@ from memrl.data.recipe import LEGACY_RECIPE
 from memrl.errors import UserError
 from memrl.modes import used
 
-RUNTIME_KEYS = ("resume", "paths", "logger", "progress", "total_frames", "total_episodes",
+RUNTIME_KEYS = ("resume", "overwrite", "paths", "logger", "progress", "total_frames", "total_episodes",
                 "checkpoint_every", "log_every", "hydra", "device", "eval")
 """Config keys that may differ between a run and its resumption (outputs and budgets; the
 periodic evaluation ``eval`` leaves the training's RNG and weights as they are)."""

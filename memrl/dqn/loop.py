@@ -47,6 +47,7 @@ from memrl.evaluation.periodic import PeriodicEvaluation
 from memrl.modes import mode_of
 from memrl.modules.qnet import arch_of
 from memrl.progress import drawn, progress_bar
+from memrl.weights import load_weights, save_weights
 
 log = logging.getLogger(__name__)
 
@@ -263,7 +264,7 @@ class Trainer:
 
     def _stage1_from(self, file: Path) -> None:
         """Stage 1 done elsewhere (``mode.stage1.init``): its weights and record, then the switch."""
-        state = torch.load(file, weights_only=False, map_location=self.device)
+        state = load_weights(file, "stage-1 weights")  # checked again: read once more here
         self.learner.loss_module.load_state_dict(state["loss_module"])
         for key, value in state.get("stage1", {}).items():
             setattr(self.stage1, key, value)
@@ -276,11 +277,10 @@ class Trainer:
         networks, a fresh Adam at ``agent.lr``)."""
         assert self.stage1_checks is not None
         self.stage1_checks.finish(self.learner.loss_module)
-        path = self.out_dir / "checkpoints" / "stage1.pt"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"loss_module": self.learner.loss_module.state_dict(),
-                    "network": arch_of(self.learner.qnet),  # what loaders rebuild
-                    "stage1": dataclasses.asdict(self.stage1)}, path)
+        path = save_weights(self.out_dir / "checkpoints" / "stage1.pt",
+                            {"loss_module": self.learner.loss_module.state_dict(),
+                             "network": arch_of(self.learner.qnet),  # what loaders rebuild
+                             "stage1": dataclasses.asdict(self.stage1)})
         self.learner.sync_target()
         following = self.spec.next_stage(self.counters.stage)
         assert following is not None, "an offline stage is followed by the stage it trains for"

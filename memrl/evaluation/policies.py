@@ -27,9 +27,9 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from memrl.checkpoint import load_qnet
+from memrl.checkpoint import load_qnet, recorded_config
 from memrl.envs.lane_change import LaneChangeEnv
-from memrl.errors import load_run_config
+from memrl.errors import UserError, load_run_config
 from memrl.evaluation.protocol import eval_subdir
 from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
@@ -168,9 +168,19 @@ def find_runs(paths: str | Path | Sequence[str | Path]) -> list[Path]:
 
 
 def run_config(run: Path) -> dict[str, Any]:
-    """A run's resolved ``config.yaml`` as a plain dict ({} when missing)."""
+    """A run's resolved config as a plain dict: its ``config.yaml``; without it, what the run
+    recorded elsewhere (:func:`recorded_config`), or a one-line refusal naming ``config.yaml``
+    (never a guess: a run without its config is not labelled Default)."""
     path = run / "config.yaml"
-    return OmegaConf.to_container(load_run_config(path)) if path.is_file() else {}  # type: ignore[return-value]
+    if path.is_file():
+        return OmegaConf.to_container(load_run_config(path))  # type: ignore[return-value]
+    cfg, source = recorded_config(run)
+    if cfg is None:
+        raise UserError(f"{path}: missing, and neither a checkpoint (checkpoints/last) nor "
+                        "checkpoints/final.pt or summary.json records the run's mode and seed; "
+                        "restore config.yaml (the run's row, seed and env come from it)")
+    log.warning("%s: missing; the run's mode, seed and env are read from %s", path, source)
+    return cfg
 
 
 def run_label(cfg: dict[str, Any]) -> str:
