@@ -390,10 +390,11 @@ class BEVRenderer:
         if car_label.shape[1] == 0:
             return
         path, car_label = x_.slot_major(path), x_.slot_major(car_label)  # [C, V, 5], [C, V]
-        points = chord_points(path[..., :4], path[..., 4] * self.path_time, self._chords)  # [C, V, K+1, 2]
-        rel = x_.f32(points - center[None, :, None, :])  # [m] from the view centre, as the cars'
-        col = 0.5 * v.width + rel[..., 1] / v.lateral_scale  # continuous pixel coordinates
-        row = 0.5 * v.height - rel[..., 0] / v.longitudinal_scale
+        rel = path[..., :2] - center  # [C, V, 2] from the view centre [m]
+        length = path[..., 4] * self.path_time  # [m]
+        dx, dy = chord_points(rel[..., 0], rel[..., 1], path[..., 2], path[..., 3], length, self._chords)
+        col = 0.5 * v.width + x_.f32(dy) / v.lateral_scale  # continuous pixel coordinates, as the cars'
+        row = 0.5 * v.height - x_.f32(dx) / v.longitudinal_scale
         dynamic = not x_.is_torch or self.device.type == "cpu"  # else fixed shapes: no host sync
         paint_polylines(x_, flat, base, col, row, car_label >= 0, values[x_.clip(car_label, 0, None)],
                         v.height, v.width, None if dynamic else self._chord_steps, k["chord_i"])

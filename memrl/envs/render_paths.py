@@ -7,9 +7,10 @@ the highest curvature so that no chord strays more than half a pixel across from
 Bresenham's): stepping along the chord's major pixel axis (rows, or columns where it runs more
 across the picture than along it), one pixel per row (column): the pixel holding the chord's
 point nearest to that row's (column's) centre line (where the chord crosses it, else its end
-in that row); and the pixels holding the chords' end points. Consecutive chords share their end
-point, so the line is 8-connected, and its tip is the pixel the path ends in (where the car
-will be after ``path_time`` seconds at constant speed and curvature).
+in that row); and the pixel holding the path's end, its tip: where the car will be after
+``path_time`` seconds at constant speed and curvature. Where two chords meet, each one's pixel
+in the joint's row (column) lies within half a pixel of the joint, so the chords of a path join
+into one 8-connected line.
 
 Hand-written (no library rasterizes many small lines into many pictures at once): the same
 arithmetic on numpy arrays and torch tensors (the renderer's two paths), slot after slot in
@@ -32,18 +33,17 @@ def chord_count(max_length: float, max_curvature: float, tolerance: float) -> in
     return max(1, math.ceil(max_length * math.sqrt(max_curvature / (8.0 * tolerance))))
 
 
-def chord_points(state: Any, length: Any, chords: int) -> Any:
-    """Points ``[..., K + 1, (x, y)]`` [m] at arc lengths ``length * j / K`` along the arcs
-    cars with ``state [..., (x, y, heading, curvature)]`` drive (numpy or torch); ``length``
-    ``[...]`` [m]. Chord j runs at heading ``h + k l (j + 1/2)`` and is ``l sinc(k l / 2)`` long
-    (``l = length / K``): the heading turns by ``k l`` from chord to chord (a rotation, no
-    further sines); a straight path's chords all run at its heading."""
-    xp: Any = torch if isinstance(state, torch.Tensor) else np
-    x, y, h, k = (state[..., i] for i in range(4))
+def chord_points(x: Any, y: Any, heading: Any, curvature: Any, length: Any, chords: int) -> tuple[Any, Any]:
+    """x and y ``[..., K + 1]`` [m] of the points at arc lengths ``length * j / K`` along the
+    arcs that cars at ``(x, y)`` with ``heading`` and ``curvature`` drive (arrays ``[...]``,
+    numpy or torch; ``length`` [m]). Chord j runs at heading ``h + k l (j + 1/2)`` and is
+    ``l sinc(k l / 2)`` long (``l = length / K``): the heading turns by ``k l`` from chord to
+    chord (a rotation, no further sines); a straight path's chords all run at its heading."""
+    xp: Any = torch if isinstance(x, torch.Tensor) else np
     step = length / chords  # arc length of a chord [m]
-    turn = k * step  # heading change per chord [rad]
+    turn = curvature * step  # heading change per chord [rad]
     chord = step * xp.sinc(turn / (2 * math.pi))  # numpy's and torch's sinc: sin(pi u) / (pi u)
-    c, s = xp.cos(h + 0.5 * turn), xp.sin(h + 0.5 * turn)
+    c, s = xp.cos(heading + 0.5 * turn), xp.sin(heading + 0.5 * turn)
     cw, sw = xp.cos(turn), xp.sin(turn)
     xs, ys = [x], [y]
     for _ in range(chords):
@@ -51,7 +51,7 @@ def chord_points(state: Any, length: Any, chords: int) -> Any:
         xs.append(x)
         ys.append(y)
         c, s = c * cw - s * sw, s * cw + c * sw
-    return xp.stack([xp.stack(xs, -1), xp.stack(ys, -1)], -1)
+    return xp.stack(xs, -1), xp.stack(ys, -1)
 
 
 def paint_polylines(x_: Any, flat: Any, base: Any, col: Any, row: Any, ok: Any, shade: Any, height: int,
@@ -92,19 +92,31 @@ def paint_polylines(x_: Any, flat: Any, base: Any, col: Any, row: Any, ok: Any, 
     offset = -0.5 * stride_major  # [px] in its picture = centre * stride_major + j * stride_minor + offset
     chord_base = x_.repeat(base, n_points - 1)  # [V * K]
     spare = flat.shape[0] - 1
-    # the pixels of the chords' end points (the tip among them): [C, V, K + 1]
-    vi, vj = x_.floor(row), x_.floor(col)
-    inside = (vi >= 0) & (vi < height) & (vj >= 0) & (vj < width) & ok[..., None]
-    ends = x_.where(inside, x_.i64(vi * width + vj) + base[:, None], spare)
-    # slot by slot (small arrays: fresh large ones cost page faults), steps [n, V * K]
-    for c in range(n_slots):
-        flat[ends[c]] = shade[c][:, None]  # [V, K + 1] <- [V, 1]
-        n = steps if steps is not None else int(x_.amax(last[c] - first[c])) + 1
-        if n <= 0:
-            continue
-        centre = first[c] + index_i[:n, None]
-        t = x_.minimum(x_.maximum(centre, lo[c]), hi[c])  # the chord's point nearest to it
-        j = x_.floor(at0[c] + t * slope[c])
-        draw = (centre <= last[c]) & (j >= 0) & (j < n_minor[c])
-        local = centre * stride_major[c] + j * stride_minor[c] + offset[c]
-        flat[x_.where(draw, x_.i64(local) + chord_base, spare)] = x_.repeat(shade[c], n_points - 1)
+    # the pixel of each path's end, its tip: [C, V]
+    ti, tj = x_.floor(row[..., -1]), x_.floor(col[..., -1])
+    inside = (ti >= 0) & (ti < height) & (tj >= 0) & (tj < width) & ok
+    tips = x_.where(inside, x_.i64(ti * width + tj) + base, spare)
+    # slot by slot (small arrays: fresh large ones cost page faults), each run of slots that
+    # need as many steps [S, n, V * K] together
+    if steps is None:  # as many as each slot's longest chord needs
+        widths = [int(w) + 1 for w in x_.amax(last - first, 1).tolist()]
+    else:
+        widths = [steps] * n_slots
+    start = 0
+    while start < n_slots:
+        end = start + 1
+        while end < n_slots and widths[end] == widths[start]:
+            end += 1
+        n, group = widths[start], slice(start, end)
+        if n > 0:
+            centre = first[group, None] + index_i[:n, None]
+            t = x_.minimum(x_.maximum(centre, lo[group, None]), hi[group, None])  # the nearest chord point
+            j = x_.floor(at0[group, None] + t * slope[group, None])
+            draw = (centre <= last[group, None]) & (j >= 0) & (j < n_minor[group, None])
+            local = centre * stride_major[group, None] + j * stride_minor[group, None] + offset[group, None]
+            index = x_.where(draw, x_.i64(local) + chord_base, spare)
+        for c in range(start, end):
+            flat[tips[c]] = shade[c]
+            if n > 0:
+                flat[index[c - start]] = x_.repeat(shade[c], n_points - 1)  # [n, V * K] <- [V * K]
+        start = end
