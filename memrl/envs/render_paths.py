@@ -81,7 +81,6 @@ def paint_polylines(x_: Any, flat: Any, base: Any, col: Any, row: Any, ok: Any, 
     lo, hi = x_.minimum(a0, a1), x_.maximum(a0, a1)
     span = a1 - a0
     slope = (b1 - b0) / x_.where(span == 0, 1.0, span)  # |slope| <= 1: at most 1 px per step
-    at0 = b0 - a0 * slope  # the minor coordinate where the chord's line crosses major 0
     rows = x_.f32(by_row)  # 1 where the chord steps along rows: exact integer arithmetic below
     n_minor = height + (width - height) * rows
     stride_major, stride_minor = 1 + (width - 1) * rows, width + (1 - width) * rows
@@ -111,7 +110,7 @@ def paint_polylines(x_: Any, flat: Any, base: Any, col: Any, row: Any, ok: Any, 
         if n > 0:
             centre = first[group, None] + index_i[:n, None]
             t = x_.minimum(x_.maximum(centre, lo[group, None]), hi[group, None])  # the nearest chord point
-            j = x_.floor(at0[group, None] + t * slope[group, None])
+            j = x_.floor(b0[group, None] + (t - a0[group, None]) * slope[group, None])  # exact at the start
             draw = (centre <= last[group, None]) & (j >= 0) & (j < n_minor[group, None])
             local = centre * stride_major[group, None] + j * stride_minor[group, None] + offset[group, None]
             index = x_.where(draw, x_.i64(local) + chord_base, spare)
