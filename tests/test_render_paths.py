@@ -144,3 +144,25 @@ def test_a_standing_car_draws_its_tip_only(speed):
     drawn = (_paths_only(renderer, center, paths, np.array([[LABEL["constant"]]]))
              != _paths_only(renderer, center, paths, np.array([[-1]])))[0]
     assert list(zip(*np.nonzero(drawn), strict=True)) == [(29, 47)]
+
+
+def test_all_slots_at_once_and_runs_of_slots_draw_the_same(monkeypatch):
+    """Few views take every slot's steps in one pass (padded to the longest), many views runs of
+    slots with equal windows: the same pixels, later slots' paths over earlier ones either way."""
+    import memrl.envs.render_paths as paths_module
+
+    renderer = BEVRenderer(VIEW, 2, 4.0, path_time=2.0, max_speed=15.0, max_curvature=0.05, channels=1)
+    rng = np.random.default_rng(7)
+    v, c = 40, 6
+    center = np.stack([np.full(v, 500.0), rng.uniform(-1.0, 5.0, v)], -1)
+    paths = np.stack([500.0 + rng.uniform(-30, 30, (v, c)), rng.choice([0.0, 4.0], (v, c)),
+                      rng.normal(0, 0.4, (v, c)) * (rng.random((v, c)) < 0.5),
+                      rng.uniform(-0.05, 0.05, (v, c)), rng.uniform(0, 15, (v, c))], -1)
+    paths[:, 3:, :2] = paths[:, :3, :2] + [3.0, 0.0]  # paths crossing others: the draw order shows
+    labels = rng.integers(-1, 7, (v, c))
+    pictures = []
+    for small in (1 << 30, 0):
+        monkeypatch.setattr(paths_module, "SMALL", small)
+        pictures.append(_paths_only(renderer, center, paths, labels))
+    assert np.array_equal(*pictures)
+    assert (pictures[0] != _paths_only(renderer, center, paths, np.full((v, c), -1))).sum() > 500

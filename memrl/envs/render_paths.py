@@ -25,6 +25,10 @@ from typing import Any
 import numpy as np
 import torch
 
+SMALL = 1 << 15
+"""Steps of all slots' chords at most that :func:`paint_polylines` takes in one pass (more: per
+run of slots with equal windows); the same pixels either way."""
+
 
 def chord_count(max_length: float, max_curvature: float, tolerance: float) -> int:
     """Chords per path: the fewest whose sagitta ``k l^2 / 8`` (the chord's largest distance
@@ -95,10 +99,12 @@ def paint_polylines(x_: Any, flat: Any, base: Any, col: Any, row: Any, ok: Any, 
     ti, tj = x_.floor(row[..., -1]), x_.floor(col[..., -1])
     inside = (ti >= 0) & (ti < height) & (tj >= 0) & (tj < width) & ok
     tips = x_.where(inside, x_.i64(ti * width + tj) + base, spare)
-    # slot by slot (small arrays: fresh large ones cost page faults), each run of slots that
-    # need as many steps [S, n, V * K] together
+    # the steps [S, n, V * K] of runs of slots that take as many (fresh large arrays cost page
+    # faults, many small ones a call each): all slots at once while that is small
     if steps is None:  # as many as each slot's longest chord needs
         widths = [int(w) + 1 for w in x_.amax(last - first, 1).tolist()]
+        if n_slots * max(widths) * first.shape[1] <= SMALL:
+            widths = [max(widths)] * n_slots
     else:
         widths = [steps] * n_slots
     start = 0
