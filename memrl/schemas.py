@@ -515,6 +515,7 @@ class BatchedBench:
     device: str = MISSING
     seed: int = spec(ge=0, le=SEED_MAX)
     path_time: float = spec(ge=0, le=10)
+    vec_sizes: list[int] = spec(ge=1)
 
 
 @dataclass

@@ -396,7 +396,7 @@ def test_numpy_and_torch_paths_of_the_rasterizer_draw_the_same_pixels(channels):
     assert len(np.unique(a)) >= 5  # road, markings and several car shades were drawn
     # every car's path (bev.path_time): any speed, heading and curvature, absent cars
     renderer = BEVRenderer(View(84, 84, 0.2, 0.8), 3, 4.0, (5.0, 2.0), path_time=2.0, max_speed=15.0,
-                           channels=channels)
+                           max_curvature=0.05, channels=channels)  # 8 chords per path
     paths = np.concatenate([cars[..., :2], rng.uniform(-0.5, 0.5, (v, c, 1)),
                             rng.choice([0.0, 0.02, -0.05], (v, c, 1)), rng.uniform(0, 15, (v, c, 1))],
                            axis=-1)

@@ -38,7 +38,8 @@ def test_bench_env_measures_both_envs_and_writes_json(compose_cfg, tmp_path):
 
 def test_bench_batched_times_each_n_beside_the_reference_and_writes_json(compose_cfg, tmp_path):
     cfg = compose_cfg("bench", ["benchmarks=[batched]", "batched.sizes=[1,4]", "batched.seconds=0.05",
-                                "batched.reference_steps=20", "batched.learned_sizes=[2]"])
+                                "batched.reference_steps=20", "batched.learned_sizes=[2]",
+                                "batched.vec_sizes=[3]"])
     result = bench(cfg, tmp_path)["batched"]
     assert set(result["constant"]) == {"1", "4"} and set(result["learned"]) == {"2"}
     assert all(r > 0 for r in [*result["constant"].values(), *result["learned"].values()])
@@ -47,6 +48,12 @@ def test_bench_batched_times_each_n_beside_the_reference_and_writes_json(compose
     assert set(result["path_time"]) == {"1", "4"} and all(r > 0 for r in result["path_time"].values())
     assert result["path_time_ratio_to_constant"]["4"] == pytest.approx(
         result["path_time"]["4"] / result["constant"]["4"])
+    # gym.make_vec on the path_time frames beside the reference on the same frames, with learned cars too
+    assert result["vec_frames"] == "bev.path_time=2.0, frame_stack=4"
+    for rows, ref in (("make_vec", "reference_vec_frames_gym_steps_per_s"),
+                      ("make_vec_learned", "reference_learned_vec_frames_gym_steps_per_s")):
+        assert set(result[rows]) == {"3"} and result[rows]["3"] > 0 and result[ref] > 0
+        assert result[f"{rows}_ratio_to_reference"]["3"] == pytest.approx(result[rows]["3"] / result[ref])
     assert result["device"] == "cpu" and result["torch_threads"] == 1
     assert json.loads((tmp_path / "bench.json").read_text())["batched"]["constant"] == result["constant"]
 

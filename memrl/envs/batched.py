@@ -172,7 +172,7 @@ class BatchedLaneChange:
             View(b.width, b.height, b.lateral_scale, b.longitudinal_scale), cfg.lanes_count,
             cfg.lane_width, (cfg.vehicle_length, cfg.vehicle_width), show_target_lane=b.show_target_lane,
             dash_length=b.dash_length, path_length=b.path_length, path_time=b.path_time,
-            max_speed=max_car_speed(cfg), channels=1, device=dev)
+            max_speed=max_car_speed(cfg), max_curvature=cfg.curvature_limit, channels=1, device=dev)
         # frame ring [L, N, H, W] (L = history) in one flat buffer: each slot followed by N
         # scratch pictures (first frames of envs reset in the same render call, see step),
         # then a spare last byte (the renderer's)

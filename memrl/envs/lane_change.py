@@ -361,6 +361,7 @@ class LaneChangeEnv(AbstractEnv):
                 self.cfg.lanes_count, self.cfg.lane_width, (self.cfg.vehicle_length, self.cfg.vehicle_width),
                 show_target_lane=b.show_target_lane, dash_length=b.dash_length,
                 path_length=b.path_length, path_time=b.path_time, max_speed=max_car_speed(self.cfg),
+                max_curvature=self.cfg.curvature_limit,
                 channels=1 if b.grayscale else 3,
             )
         return self._bev

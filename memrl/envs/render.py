@@ -11,7 +11,8 @@ Pixel convention: pixel (row i, col j) covers the continuous square [j, j+1) x [
 point the crop is centred on maps to the continuous point (W/2, H/2). A pixel takes the shade
 of whatever covers its centre: a car (rectangle, closed) covers the pixels whose centres lie
 inside it, later cars over earlier ones; the path cue covers every pixel one of its points
-(spaced under half a pixel along the arc) falls in.
+(spaced under half a pixel along the arc) falls in; every car's path (``path_time``) is a few
+chords of its arc, each a 1-px line (:mod:`memrl.envs.render_paths`).
 
 Draw order: the road, then (``path_time > 0``) every car's path (later slots over earlier
 ones), then the cars, then (``path_length > 0``) the viewing car's path cue.
@@ -27,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from memrl.envs.render_paths import chord_count, chord_points, paint_polylines
 from memrl.envs.vehicles import CurvatureVehicle
 
 PALETTE: dict[str, tuple[int, int, int]] = {
@@ -99,6 +101,9 @@ class _Ops:
 
     def stack(self, items: list[Any], axis: int) -> Any:
         return torch.stack(items, dim=axis) if self.is_torch else np.stack(items, axis=axis)
+
+    def cat(self, items: list[Any], axis: int) -> Any:
+        return torch.cat(items, dim=axis) if self.is_torch else np.concatenate(items, axis=axis)
 
     def cumsum(self, x: Any, axis: int) -> Any:
         return torch.cumsum(x, dim=axis) if self.is_torch else np.cumsum(x, axis=axis)
@@ -191,8 +196,11 @@ class BEVRenderer:
         path_time: every car's path drawn ahead of it at its current heading and curvature
             over ``speed * path_time`` metres [s], under the cars, each in its car's shade
             (0: none; not together with ``path_length``).
-        max_speed: the highest speed a car can have [m/s]: fixes the points per path so that
-            they lie at most half a pixel apart (fixed shapes) when ``path_time > 0``.
+        max_speed: the highest speed a car can have [m/s]: with ``max_curvature``, fixes the
+            chords per path (``path_time > 0``; fixed shapes).
+        max_curvature: the highest |curvature| a car can have [rad/m]: each path is drawn as
+            chords few enough to stray at most half a pixel across from its arc at this
+            curvature on the longest path (0: one chord, straight paths only).
         palette: RGB shades by name (default :data:`PALETTE`).
         channels: 3 for RGB; 1 draws each shade's grayscale level directly, equal to
             TorchRL's ``GrayScale`` of the RGB picture.
@@ -211,6 +219,7 @@ class BEVRenderer:
         path_length: float = 0.0,
         path_time: float = 0.0,
         max_speed: float = 0.0,
+        max_curvature: float = 0.0,
         palette: dict[str, tuple[int, int, int]] | None = None,
         channels: int = 3,
         device: torch.device | str = "cpu",
@@ -258,9 +267,12 @@ class BEVRenderer:
             # dashes that can show in a crop: 2 * half_span of road plus a period on each side
             "dash_k": np.arange(math.ceil(2 * self._half_span / (2 * dash_length)) + 3, dtype=np.float64),
             "path_s": np.linspace(0.0, path_length, max(2, math.ceil(path_length / step) + 1)),
-            # fractions of each car's path (speed * path_time) where its points lie
-            "path_u": np.linspace(0.0, 1.0, max(2, math.ceil(max_speed * path_time / step) + 1)),
         }
+        # every car's path: chords of its arc; the most pixels a chord steps through (fixed shapes)
+        longest, fine = max_speed * path_time, min(view.lateral_scale, view.longitudinal_scale)
+        self._chords = chord_count(longest, max_curvature, 0.5 * fine)  # each within half a pixel
+        self._chord_steps = math.ceil(longest / self._chords / fine) + 2
+        consts["chord_i"] = np.arange(max(self._chord_steps, h, w), dtype=np.float32)
         on_device = {k: torch.from_numpy(v).to(self.device) for k, v in consts.items()}
         self._consts: dict[_Ops, dict[str, Any]] = {NUMPY: consts, TORCH: on_device}
         self.table = self._consts[TORCH]["table"]
@@ -371,21 +383,21 @@ class BEVRenderer:
     def _paint_paths(self, x_: _Ops, flat: Any, base: Any, center: Any, path: Any, car_label: Any,
                      values: Any) -> None:
         """Paint every car's path (``path_time > 0``): the arc it drives at its heading and
-        curvature over ``speed * path_time`` metres, a 1-px line in its shade, slot after slot
-        (one shade per write: later cars' paths over earlier ones, as the cars)."""
+        curvature over ``speed * path_time`` metres, as a few chords, each a 1-px line in its
+        car's shade, slot after slot (one shade per write: later cars' paths over earlier ones,
+        as the cars)."""
         v, k = self.view, self._consts[x_]
         if car_label.shape[1] == 0:
             return
-        s = (path[..., 4] * self.path_time)[..., None] * k["path_u"]  # [V, C, S] arc lengths [m]
-        rel = arc_points(path[..., :4], s) - center[:, None, None, :]  # [V, C, S, 2]
-        col = x_.i64(x_.floor(0.5 * v.width + rel[..., 1] / v.lateral_scale))
-        row = x_.i64(x_.floor(0.5 * v.height - rel[..., 0] / v.longitudinal_scale))
-        ok = (row >= 0) & (row < v.height) & (col >= 0) & (col < v.width) & (car_label >= 0)[..., None]
-        index = x_.slot_major(x_.where(ok, base[:, None, None] + row * v.width + col, flat.shape[0] - 1))
-        shade = x_.slot_major(values[x_.clip(car_label, 0, None)])  # [C, V]
-        n_points = index.shape[-1]
-        for slot in range(len(index)):
-            flat[index[slot].reshape(-1)] = x_.repeat(shade[slot], n_points)
+        path, car_label = x_.slot_major(path), x_.slot_major(car_label)  # [C, V, 5], [C, V]
+        rel = path[..., :2] - center  # [C, V, 2] from the view centre [m]
+        length = path[..., 4] * self.path_time  # [m]
+        dx, dy = chord_points(rel[..., 0], rel[..., 1], path[..., 2], path[..., 3], length, self._chords)
+        col = 0.5 * v.width + x_.f32(dy) / v.lateral_scale  # continuous pixel coordinates, as the cars'
+        row = 0.5 * v.height - x_.f32(dx) / v.longitudinal_scale
+        dynamic = not x_.is_torch or self.device.type == "cpu"  # else fixed shapes: no host sync
+        paint_polylines(x_, flat, base, col, row, car_label >= 0, values[x_.clip(car_label, 0, None)],
+                        v.height, v.width, None if dynamic else self._chord_steps, k["chord_i"])
 
     def _paint_cars(self, x_: _Ops, flat: Any, base: Any, center: Any, cars: Any, car_label: Any,
                     values: Any) -> None:
