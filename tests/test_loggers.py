@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import csv
 import importlib.util
+import io
 import json
 import logging
+import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -179,7 +182,7 @@ def test_a_missing_backend_is_refused_in_one_line_naming_its_extra(compose_cfg, 
     check_backend({"_target_": "torchrl.record.loggers.csv.CSVLogger"})  # no package needed
 
 
-def test_without_progress_bar_a_line_every_log_every_updates(compose_cfg, tmp_path, caplog):
+def test_without_progress_bar_a_line_every_log_every_updates(compose_cfg, tmp_path, caplog, monkeypatch):
     cfg = compose_cfg("train", TINY + ["progress=false"])
     with caplog.at_level(logging.INFO, logger="memrl.dqn.records"):
         summary = train(cfg, tmp_path)
@@ -188,9 +191,22 @@ def test_without_progress_bar_a_line_every_log_every_updates(compose_cfg, tmp_pa
     assert summary.updates // 5 == len(updates) == len(lines) >= 2
     assert [line.split(",")[0] for line in lines] == [f"updates {r['updates']}" for r in updates]
     caplog.clear()
+    with caplog.at_level(logging.INFO, logger="memrl.dqn.records"):  # off a terminal (pytest's pipes)
+        train(compose_cfg("train", TINY + ["progress=true"]), tmp_path / "no_terminal")
+    assert len([r for r in caplog.records if r.name == "memrl.dqn.records"]) == len(lines)
+    caplog.clear()
+    monkeypatch.setattr(sys, "stderr", Terminal())  # on a terminal the bar replaces the lines
     with caplog.at_level(logging.INFO, logger="memrl.dqn.records"):
         train(compose_cfg("train", TINY + ["progress=true"]), tmp_path / "bar")
     assert not [r for r in caplog.records if r.name == "memrl.dqn.records"]
+    assert re.search(r"\d+%\|", sys.stderr.getvalue())  # the bar was drawn
+
+
+class Terminal(io.StringIO):
+    """A stderr that says it is a terminal."""
+
+    def isatty(self) -> bool:
+        return True
 
 
 def test_run_name_is_the_run_folder_under_the_output_root(tmp_path):

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
+import pty
+import re
 import signal
+import struct
 import subprocess
 import sys
+import termios
 import threading
 import time
 from pathlib import Path
@@ -102,18 +107,33 @@ def test_signal_during_recording_stops_cleanly_and_resumes(compose_cfg, tmp_path
            "env.duration=30", "env.vehicles_count=[0,2]", "progress=true",
            f"hydra.run.dir={tmp_path / 'hydra'}"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    terminal, its_end = pty.openpty()  # stderr a terminal, as at a keyboard: the bar is drawn there
+    fcntl.ioctl(its_end, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))  # 24 x 120 (0 x 0: no bar)
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=its_end,
                             text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    os.close(its_end)
     err: list[str] = []
-    reader = threading.Thread(target=lambda: err.extend(iter(proc.stderr.readline, "")), daemon=True)
+
+    def read() -> None:
+        while True:
+            try:
+                chunk = os.read(terminal, 4096)
+            except OSError:  # the child closed its end
+                return
+            if not chunk:
+                return
+            err.append(chunk.decode(errors="replace"))
+
+    reader = threading.Thread(target=read, daemon=True)
     reader.start()
     deadline = time.time() + 120
-    while not any("record:" in line and "/20" in line and " 0/20" not in line for line in err):
+    while not re.search(r"record:.* ([1-9]\d*)/20", "".join(err)):
         assert time.time() < deadline and proc.poll() is None, "".join(err)
         time.sleep(0.2)
     proc.send_signal(sig)
     assert proc.wait(60) == status
     reader.join(5)
+    os.close(terminal)
     lines = [ln for ln in "".join(err).replace("\r", "\n").splitlines() if ln.strip() and "record:" not in ln]
     assert len(lines) == 1, lines
     assert lines[0].startswith(f"interrupted ({name}) after episode ")
