@@ -136,13 +136,13 @@ def check_train(cfg: DictConfig) -> None:
 
     check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(TrainSchema, cfg)
+    check_env(cfg.env)  # before the relations of check_train_config read env keys
     check_train_config(cfg)
     check_network(cfg.network)
     if cfg.self_play_every and cfg.env.opponent.type == "constant":
         raise config_error("self_play_every", "snapshots join the learned cars' pool; it needs "
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
-    check_env(cfg.env)
     if cfg.env.opponent.type != "constant":  # every pattern must match a past agent that saw these frames
         from memrl.modules.opponents import check_pool_views, pool_views
 

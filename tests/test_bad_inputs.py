@@ -103,6 +103,23 @@ ROWS = [
     ("train", ["+mode=A", "mode.demo_fraction=1.5"], "mode.demo_fraction"),
     ("train", ["+mode=B", "mode.example.action_noise=1"], "mode.example.action_noise"),
     ("train", ["+mode=A", "mode.example.episodes=0"], "mode.example.episodes"),
+    # issue 64 item 5: values that meant nothing or something else
+    ("train", ["agent.grad_clip=-1"], "'agent.grad_clip': must be >= 0, got -1.0"),
+    ("train", ["agent.grad_clip=nan"], "'agent.grad_clip'"),
+    ("train", ["agent.n_step=301"], "'agent.n_step': 301 steps summed is longer than an episode"),
+    ("train", ["+mode=B", "mode.stage1.margin=-1"], "'mode.stage1.margin'"),
+    ("train", ["+mode=B", "mode.stage1.plateau_checks=0"], "'mode.stage1.plateau_checks'"),
+    ("train", ["+mode=B", "mode.stage1.plateau_tol=nan"], "'mode.stage1.plateau_tol'"),
+    ("train", ["+mode=B", "mode.stage1.check_every=0"], "'mode.stage1.check_every': must be >= 1"),
+    ("train", ["+mode=B", "mode.stage1.check_every=40000"],
+     "'mode.stage1.check_every': 40000 updates between checks is more than mode.stage1.max_updates"),
+    ("train", ["+mode=B", "mode.stage1.criterion=plateau", "mode.stage1.plateau_checks=30"],
+     "'mode.stage1.plateau_checks': a window of 30 checks"),
+    ("train", ["buffer.capacity=1000000000"], "'buffer.capacity': 1000000000 transitions need at least"),
+    ("deploy", ["deploy.speed_pid.p=inf"], "'deploy.speed_pid.p': must be >= 0, got inf"),
+    ("deploy", ["deploy.speed_pid.p=nan"], "'deploy.speed_pid.p'"),
+    ("deploy", ["deploy.sensors.gyro_bias=nan"], "'deploy.sensors.gyro_bias': must be a finite number"),
+    ("evaluate", ["policy=scripted", "protocol.seed=-1"], "'protocol.seed'"),
     # record
     ("record", ["episodes=0"], "episodes"),
     ("record", ["resume=/nonexistent/recording"], "resume"),
@@ -364,6 +381,8 @@ CLI_ROWS = [
     (["memrl.bench", "nope"], "benchmarks"),
     (["memrl.study", "study.train_overrides=['agent.lrr=1']"], "agent.lrr"),
     (["memrl.dagger", "iterations=0"], "'iterations'"),
+    (["memrl.deploy", "deploy.speed_pid.p=nan"], "config 'deploy.speed_pid.p': must be >= 0, got nan"),
+    (["memrl.train", "buffer.capacity=1000000000"], "config 'buffer.capacity': 1000000000 transitions"),
 ]
 
 
