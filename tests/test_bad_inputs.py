@@ -432,3 +432,52 @@ def test_user_errors_and_bugs_are_told_apart():
     assert is_user_error(FileNotFoundError(2, "No such file or directory", "/a/b"))
     assert "/a/b" in one_line(FileNotFoundError(2, "No such file or directory", "/a/b"))
     assert not is_user_error(ZeroDivisionError("bug")) and exit_status(KeyError("k")) == 1
+
+
+def test_gym_env_refuses_step_none_and_moves_nothing():
+    from memrl.envs.lane_change import LaneChangeEnv
+
+    env = LaneChangeEnv(config={"vehicles_count": 2})
+    env.reset(seed=0)
+    before = (env.steps, [tuple(c.position) for c in env.others])
+    with pytest.raises(ValueError) as info:
+        env.step(None)
+    assert "0..8" in assert_one_line_naming(info.value, "None")
+    assert (env.steps, [tuple(c.position) for c in env.others]) == before
+
+
+@pytest.mark.parametrize("end", ["terminated", "truncated"])
+def test_gym_env_warns_once_when_stepped_after_the_episode_ended(end):
+    import warnings
+
+    from memrl.envs.lane_change import LaneChangeEnv
+    from memrl.envs.vehicles import IDLE
+
+    env = LaneChangeEnv(config={"vehicles_count": 0, "duration": 3, "initial_offset": 0.0})
+    env.reset(seed=0)
+    if end == "terminated":
+        env.vehicle.crashed = True  # a crash ends the episode at the next step
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        flags = [env.step(IDLE)[2:4] for _ in range(3 if end == "truncated" else 1)]
+        assert caught == []  # stepping up to the end says nothing
+        assert flags[-1][0 if end == "terminated" else 1]
+        env.step(IDLE)
+        env.step(IDLE)
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 1 and f"{end} = True" in messages[0] and "reset()" in messages[0], messages
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env.reset(seed=1)
+        env.step(IDLE)
+    assert caught == []  # a new episode starts quiet
+
+
+@pytest.mark.parametrize("num_envs", [None, 2])
+def test_make_env_refuses_a_device_that_is_none_at_one_env_as_at_two(num_envs):
+    from memrl.envs.config import BatchedEnvError
+    from memrl.envs.torchrl_env import make_env
+
+    with pytest.raises(BatchedEnvError) as info:
+        make_env({}, num_envs=num_envs, device="tpu")
+    assert_one_line_naming(info.value, "'tpu'")
