@@ -106,8 +106,8 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
         os.environ[ONE_LINE_ENV] = "1"
     try:
         return main()
-    except signals.Interrupted as stop:  # before the task started (composition, checks)
-        print(f"interrupted by {stop.name}", file=sys.stderr)
+    except signals.Interrupted as stop:  # before the task started (composition, checks, Hydra's files)
+        print(interrupted_before_task(stop), file=sys.stderr)
         sys.exit(stop.exit_status)
     except Exception as err:
         if not (one_line_errors and is_user_error(err)):
@@ -120,6 +120,24 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
+
+
+def interrupted_before_task(stop: signals.Interrupted) -> str:
+    """The line for a signal that came before :func:`run_task` took over: during composition
+    and the start checks (nothing made: ``interrupted by SIGTERM``), or once Hydra had made the
+    run folder (``.hydra/``, the log), which is then handled as a stop before the first
+    checkpoint (:func:`stopped_line`: the new folder is removed, the command printed)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    from omegaconf import OmegaConf
+
+    cfg = HydraConfig.instance().cfg
+    where = OmegaConf.select(cfg, "hydra.runtime.output_dir", default=None) if cfg is not None else None
+    if where is None or not Path(str(where)).is_dir() or \
+            OmegaConf.select(cfg, "hydra.mode", default=None) == RunMode.MULTIRUN:
+        return f"interrupted by {stop.name}"
+    overrides = [str(o) for o in OmegaConf.select(cfg, "hydra.overrides.task", default=[]) or []]
+    return stopped_line(stop, cfg, Path(str(where)), overrides)  # type: ignore[arg-type]
 
 
 def remove_if_bare(run_dir: Path) -> bool:
@@ -196,6 +214,9 @@ def stopped_line(stop: signals.Interrupted, cfg: DictConfig, out: Path, override
     nothing to resume: its folder is removed."""
     import shlex
 
+    from memrl.stop import output_overrides
+
+    overrides = [*overrides, *(o for o in output_overrides() if o not in overrides)]  # hydra.run.dir
     task = str(cfg.get("task_name", "train"))
     if task == "train":
         from memrl.dqn import checkpoint as ckpt
