@@ -141,13 +141,29 @@ def interrupted_before_task(stop: signals.Interrupted) -> str:
 
 
 def remove_if_bare(run_dir: Path) -> bool:
-    """Remove a run folder that holds only what Hydra wrote before the task (True if removed)."""
+    """Remove a run folder that holds only what Hydra wrote before the task (True if removed),
+    and the folders Hydra made above it that are left empty (``outputs/deploy/runs/``)."""
     if not run_dir.is_dir():
         return False
     if any(p.name not in HYDRA_FILES and p.suffix != ".log" for p in run_dir.iterdir()):
         return False
     shutil.rmtree(run_dir, ignore_errors=True)
+    remove_empty_parents(run_dir)
     return True
+
+
+def remove_empty_parents(run_dir: Path) -> None:
+    """Remove the empty folders above ``run_dir`` that did not exist before this run
+    (:data:`memrl.hydra_callbacks.EXISTED`, recorded by the start checks; nothing when unknown)."""
+    from memrl import hydra_callbacks
+
+    stop = hydra_callbacks.EXISTED
+    if stop is None:
+        return
+    folder = run_dir.absolute().parent
+    while folder != stop and stop in folder.parents and folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
+        folder = folder.parent
 
 
 def undo_hydra_files(out: Path, subdir: str | None, log_file: Path, log_stat: os.stat_result | None,

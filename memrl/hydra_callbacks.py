@@ -36,6 +36,22 @@ def check_config(config: DictConfig) -> None:
     run_dir = OmegaConf.select(config, "hydra.run.dir")
     if run_dir is not None:
         check_writable(run_dir, "paths.output_root")  # before Hydra makes the run folder
+        global EXISTED  # noqa: PLW0603 - one run per process
+        EXISTED = existing_ancestor(Path(str(run_dir)))
+
+
+EXISTED: Path | None = None
+"""The deepest folder of a single run's ``hydra.run.dir`` that existed before Hydra made the
+rest (None: not known); a refused start removes the empty folders below it
+(:func:`memrl.cli.run_task`)."""
+
+
+def existing_ancestor(path: Path) -> Path:
+    """``path`` or its deepest ancestor that exists."""
+    path = path.absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
 
 
 def sweep_jobs(config: DictConfig) -> list[list[str]]:

@@ -481,3 +481,45 @@ def test_make_env_refuses_a_device_that_is_none_at_one_env_as_at_two(num_envs):
     with pytest.raises(BatchedEnvError) as info:
         make_env({}, num_envs=num_envs, device="tpu")
     assert_one_line_naming(info.value, "'tpu'")
+
+
+def _hashes(root: Path) -> dict[str, str]:
+    import hashlib
+
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_report_on_a_garbled_eval_json_is_one_line_and_leaves_no_folders(tmp_path):
+    run = tmp_path / "run"
+    (run / "eval").mkdir(parents=True)
+    (run / "eval" / "eval.json").write_text("{garbled")
+    before = _hashes(tmp_path)
+    proc = cli(["memrl.report", f"runs=[{run}]", "evaluate_missing=false"], tmp_path)
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: {run / 'eval' / 'eval.json'}: not an evaluation memrl can read"), proc.stderr
+    assert not (tmp_path / "outputs").exists() and _hashes(tmp_path) == before
+
+
+def test_a_refused_deploy_leaves_no_empty_output_folders(tmp_path):
+    """The refusal comes after Hydra made ``outputs/deploy/runs/<time>/``: each folder it made
+    goes, the folders that were there stay."""
+    (tmp_path / "outputs").mkdir()
+    proc = cli(["memrl.deploy", "deploy.policy=checkpoint", f"deploy.checkpoint={tmp_path}"], tmp_path)
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"error: {tmp_path}: no trained network found (expected a run folder with "
+        "checkpoints/final.pt, or a final.pt file)"]
+    assert [p.name for p in tmp_path.iterdir()] == ["outputs"] and not any((tmp_path / "outputs").iterdir())
+
+
+def test_read_result_names_a_garbled_or_incomplete_eval_json(tmp_path):
+    from memrl.evaluation.results import read_result
+
+    for text in ("{garbled", "[]", '{"name": "x"}'):
+        (tmp_path / "eval.json").write_text(text)
+        with pytest.raises(ValueError) as info:
+            read_result(tmp_path)
+        assert_one_line_naming(info.value, f"{tmp_path / 'eval.json'}: not an evaluation memrl can read")
