@@ -381,6 +381,8 @@ CLI_ROWS = [
     (["memrl.bench", "nope"], "benchmarks"),
     (["memrl.study", "study.train_overrides=['agent.lrr=1']"], "agent.lrr"),
     (["memrl.dagger", "iterations=0"], "'iterations'"),
+    (["memrl.train", "network._target_=os.system"],
+     "config 'network._target_': cannot import 'os.system' (Located non-class"),
     (["memrl.deploy", "deploy.speed_pid.p=nan"], "config 'deploy.speed_pid.p': must be >= 0, got nan"),
     (["memrl.train", "buffer.capacity=1000000000"], "config 'buffer.capacity': 1000000000 transitions"),
 ]
@@ -523,3 +525,19 @@ def test_read_result_names_a_garbled_or_incomplete_eval_json(tmp_path):
         with pytest.raises(ValueError) as info:
             read_result(tmp_path)
         assert_one_line_naming(info.value, f"{tmp_path / 'eval.json'}: not an evaluation memrl can read")
+
+
+def test_evaluate_of_a_run_whose_final_pt_was_deleted_names_it_in_one_line(
+        compose_cfg, project, smoke_run):
+    import shutil
+
+    run = project / "run"
+    shutil.copytree(smoke_run, run)
+    (run / "checkpoints" / "final.pt").unlink()
+    before = _hashes(project)
+    out = project / "outputs" / "evaluate" / "runs" / "now"
+    err = refusal(compose_cfg, "evaluate", [f"policy.run={run}"], out)
+    message = assert_one_line_naming(err, f"policy 'run': no finished training run (checkpoints/final.pt) "
+                                          f"in {run}")
+    assert "Error in call to target" not in message and "CheckpointSource" not in message
+    assert _hashes(project) == before and not out.exists()
