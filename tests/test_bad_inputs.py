@@ -541,3 +541,28 @@ def test_evaluate_of_a_run_whose_final_pt_was_deleted_names_it_in_one_line(
                                           f"in {run}")
     assert "Error in call to target" not in message and "CheckpointSource" not in message
     assert _hashes(project) == before and not out.exists()
+
+
+def test_report_of_a_run_evaluated_under_two_protocols_is_refused_before_evaluating(
+        compose_cfg, project, smoke_run):
+    import shutil
+
+    from memrl.evaluate import evaluate
+    from memrl.report import report
+
+    run = project / "run"
+    shutil.copytree(smoke_run, run)
+    small = ["protocol.episodes=1", "protocol.duration=10", "protocol.initial_lanes=[random]",
+             "workers=1", "batch=1", "progress=false"]
+    evaluate(compose_cfg("evaluate", [f"policy.run={run}", *small]), out_dir=project / "x")
+    evaluate(compose_cfg("evaluate", [f"policy.run={run}", "policy.subdir=eval_b", *small,
+                                      "protocol.seed=7"]), out_dir=project / "x")
+    before = _hashes(project)
+    report_args = [f"runs=[{run}]", "fig5=false", "rollouts.rows=[]", "progress=false", *small[:3]]
+    for extra in (["evaluate_missing=false"], ["evaluate_missing=true", "overwrite=true", "protocol.seed=9"]):
+        out = project / "outputs" / "report" / "runs" / "now"
+        with pytest.raises(ValueError) as info:
+            report(compose_cfg("report", [*report_args, *extra]), out)
+        message = assert_one_line_naming(info.value, "config 'runs': evaluations made under different protocols")
+        assert str(run / "eval_b") in message
+        assert _hashes(project) == before and not out.exists()  # nothing evaluated, nothing replaced
