@@ -563,6 +563,7 @@ def test_report_of_a_run_evaluated_under_two_protocols_is_refused_before_evaluat
         out = project / "outputs" / "report" / "runs" / "now"
         with pytest.raises(ValueError) as info:
             report(compose_cfg("report", [*report_args, *extra]), out)
-        message = assert_one_line_naming(info.value, "config 'runs': evaluations made under different protocols")
+        message = assert_one_line_naming(info.value,
+                                         "config 'runs': evaluations made under different protocols")
         assert str(run / "eval_b") in message
         assert _hashes(project) == before and not out.exists()  # nothing evaluated, nothing replaced

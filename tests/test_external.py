@@ -204,14 +204,16 @@ def test_the_worked_example_puts_an_sb3_row_beside_memrls_in_a_report(run_and_en
 
     from memrl.report import report
 
-    spec = importlib.util.spec_from_file_location("sb3_dqn", Path(__file__).parents[1] / "tools" / "sb3_dqn.py")
+    tool_file = Path(__file__).parents[1] / "tools" / "sb3_dqn.py"
+    spec = importlib.util.spec_from_file_location("sb3_dqn", tool_file)
     tool = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
     spec.loader.exec_module(tool)  # type: ignore[union-attr]
     model = tool.train(64, tmp_path / "sb3" / "dqn_lane.zip")
     run, _ = run_and_env
     evaluate_with(compose_cfg, [f"policy.run={run}"], out=tmp_path / "ref")
     evaluate_with(compose_cfg, ["policy=sb3", f"policy.path={model}"], tool.ENV, tmp_path / "sb3" / "eval")
-    files = report(compose_cfg("report", [f"runs=[{run},{tmp_path / 'sb3' / 'eval'}]", "evaluate_missing=false",
+    files = report(compose_cfg("report", [f"runs=[{run},{tmp_path / 'sb3' / 'eval'}]",
+                                          "evaluate_missing=false",
                                           "rollouts.rows=[SB3 DQN]", "rollouts.video=false",
                                           "progress=false", "n_resamples=200", "fig5=false"]),
                    out_dir=tmp_path / "report")
