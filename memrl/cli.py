@@ -142,28 +142,26 @@ def interrupted_before_task(stop: signals.Interrupted) -> str:
 
 def remove_if_bare(run_dir: Path) -> bool:
     """Remove a run folder that holds only what Hydra wrote before the task (True if removed),
-    and the folders Hydra made above it that are left empty (``outputs/deploy/runs/``)."""
+    and the folders Hydra made above it that are left empty (``outputs/deploy/runs/``). A
+    folder that existed before this run is kept, its ``.hydra/`` files put back as they were."""
+    from memrl.hydra_callbacks import before_start
+
     if not run_dir.is_dir():
         return False
     if any(p.name not in HYDRA_FILES and p.suffix != ".log" for p in run_dir.iterdir()):
         return False
+    before = before_start(run_dir)
+    if before is not None and before.existed == run_dir.absolute():
+        before.restore()
+        return False
     shutil.rmtree(run_dir, ignore_errors=True)
-    remove_empty_parents(run_dir)
+    if before is not None:  # the empty folders Hydra made above it
+        folder = run_dir.absolute().parent
+        while folder != before.existed and before.existed in folder.parents and folder.is_dir() \
+                and not any(folder.iterdir()):
+            folder.rmdir()
+            folder = folder.parent
     return True
-
-
-def remove_empty_parents(run_dir: Path) -> None:
-    """Remove the empty folders above ``run_dir`` that did not exist before this run
-    (:data:`memrl.hydra_callbacks.EXISTED`, recorded by the start checks; nothing when unknown)."""
-    from memrl import hydra_callbacks
-
-    stop = hydra_callbacks.EXISTED
-    if stop is None:
-        return
-    folder = run_dir.absolute().parent
-    while folder != stop and stop in folder.parents and folder.is_dir() and not any(folder.iterdir()):
-        folder.rmdir()
-        folder = folder.parent
 
 
 def undo_hydra_files(out: Path, subdir: str | None, log_file: Path, log_stat: os.stat_result | None,
@@ -210,6 +208,10 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             if is_user_error(err):
                 undo_hydra_files(out, hydra_cfg.output_subdir, log_file, log_stat)
+                from memrl.hydra_callbacks import before_start
+
+                if (before := before_start(out)) is not None:
+                    before.restore()  # a folder that existed: its .hydra/*.yaml as they were
             remove_if_bare(out)
             if is_user_error(err) and os.environ.get(ONE_LINE_ENV):
                 # here, not in run_hydra: Hydra would first print a line of its own

@@ -567,3 +567,21 @@ def test_report_of_a_run_evaluated_under_two_protocols_is_refused_before_evaluat
                                          "config 'runs': evaluations made under different protocols")
         assert str(run / "eval_b") in message
         assert _hashes(project) == before and not out.exists()  # nothing evaluated, nothing replaced
+
+
+def test_a_start_refused_at_the_dataset_check_leaves_an_existing_folder_as_it_was(tmp_path):
+    """Hydra writes ``.hydra/*.yaml`` and the log before the dataset's own check refuses it:
+    a folder that was there keeps its files, bytes and times."""
+    dataset = tmp_path / "not_a_dataset"
+    dataset.mkdir()
+    folder = tmp_path / "mine"
+    (folder / ".hydra").mkdir(parents=True)
+    for name in ("config.yaml", "hydra.yaml", "overrides.yaml"):
+        (folder / ".hydra" / name).write_text(f"# my own {name}\n")
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.rglob("*") if p.is_file()}
+    proc = cli(["memrl.train", "+mode=A", f"mode.demos_path={dataset}", f"hydra.run.dir={folder}"], tmp_path)
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and str(dataset) in lines[0], proc.stderr
+    after = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.rglob("*") if p.is_file()}
+    assert after == before
