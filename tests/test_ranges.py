@@ -11,6 +11,7 @@ refusals run in-process, through each command's start check (``memrl.schemas.CHE
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import types
@@ -189,7 +190,7 @@ def test_the_defaults_pass_every_start_check(tmp_path, monkeypatch):
     monkeypatch.setenv("MEMRL_ROOT", str(tmp_path))
     monkeypatch.chdir(tmp_path)
     for command, overrides in {(leaf.command, leaf.overrides) for leaf in every_leaf()}:
-        CHECKS[command](composed(command, overrides).copy())
+        CHECKS[command](copy.deepcopy(composed(command, overrides)))
 
 
 @pytest.mark.parametrize("leaf", every_leaf(), ids=lambda leaf: f"{leaf.command}:{leaf.key}")
@@ -201,7 +202,7 @@ def test_a_value_outside_the_range_is_refused_naming_the_key(leaf, tmp_path, mon
     monkeypatch.chdir(tmp_path)
     name = key.removeprefix("env.") if leaf.env else key  # the env's own messages
     for value in outside(leaf):
-        cfg = composed(command, overrides).copy()
+        cfg = copy.deepcopy(composed(command, overrides))
         given = value if (is_list and isinstance(value, list)) else ([value] if is_list else value)
         OmegaConf.update(cfg, key, given, merge=False)
         with pytest.raises(Exception) as info:
@@ -211,3 +212,25 @@ def test_a_value_outside_the_range_is_refused_naming_the_key(leaf, tmp_path, mon
         message = one_line(err)
         assert "\n" not in message and f"'{name}'" in message, f"{key}={given}: {message}"
     assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_nan_never_passes_and_inf_only_where_the_range_says_so():
+    from dataclasses import dataclass
+
+    from memrl.errors import ConfigError
+    from memrl.fields import check_fields, spec
+
+    @dataclass
+    class Toy:
+        limit: float = spec(1.0, gt=0, inf=True)
+        weight: float = spec(1.0, finite=True)
+        share: float = spec(0.5, ge=0, le=1)
+
+    check_fields(Toy, {"limit": math.inf, "weight": -3.0, "share": 1.0})
+    for key, value, said in (("limit", math.nan, "must be > 0 and inf allowed, got nan"),
+                             ("weight", math.inf, "must be a finite number, got inf"),
+                             ("weight", math.nan, "must be a finite number, got nan"),
+                             ("share", math.nan, "must be in [0, 1], got nan")):
+        with pytest.raises(ConfigError) as info:
+            check_fields(Toy, {key: value}, "toy.")
+        assert str(info.value) == f"config 'toy.{key}': {said}"
