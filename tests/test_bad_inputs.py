@@ -120,6 +120,9 @@ ROWS = [
     ("deploy", ["deploy.speed_pid.p=nan"], "'deploy.speed_pid.p'"),
     ("deploy", ["deploy.sensors.gyro_bias=nan"], "'deploy.sensors.gyro_bias': must be a finite number"),
     ("evaluate", ["policy=scripted", "protocol.seed=-1"], "'protocol.seed'"),
+    ("report", ["runs=[.]", "rollouts.crash_frames=301"],
+     "'rollouts.crash_frames': 301 steps before a crash is a window longer than an episode"),
+    ("preview", ["steps=[0,301]"], "'steps': [0, 301]: a step after the episode's end"),
     # record
     ("record", ["episodes=0"], "episodes"),
     ("record", ["resume=/nonexistent/recording"], "resume"),

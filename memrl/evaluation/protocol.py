@@ -58,11 +58,15 @@ class ProtocolError(UserError, ValueError):
 
 def check_protocol(cfg: ProtocolConfig | Mapping[str, Any] | DictConfig) -> ProtocolConfig:
     """A typed, checked :class:`ProtocolConfig` from a config node or mapping."""
+    from memrl.errors import ConfigError
     from memrl.fields import check_fields
 
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
-    check_fields(ProtocolConfig, asdict(cfg) if isinstance(cfg, ProtocolConfig) else cfg, "protocol.")
+    try:
+        check_fields(ProtocolConfig, asdict(cfg) if isinstance(cfg, ProtocolConfig) else cfg, "protocol.")
+    except ConfigError as err:
+        raise ProtocolError(str(err)) from None
     p = cfg if isinstance(cfg, ProtocolConfig) else ProtocolConfig(**dict(cfg))  # type: ignore[arg-type]
     opponent = dict(p.opponent) if isinstance(p.opponent, Mapping) else {"type": str(p.opponent)}
     if opponent.get("type") == "constant":
