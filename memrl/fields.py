@@ -124,4 +124,5 @@ def check_fields(schema: type, node: Mapping[str, Any] | DictConfig, prefix: str
                 raise config_error(key, f"every value must be {_valid(meta)}, got {value!r}")
         elif {k for k in meta if k != "nonempty"} and \
                 not _element_ok(value, {k: m for k, m in meta.items() if k != "nonempty"}):
-            raise config_error(key, f"must be {_valid(meta)}, got {value!r}")
+            null = " or null" if "None" in str(f.type) else ""  # an optional key (``int | None``)
+            raise config_error(key, f"must be {_valid(meta)}{null}, got {value!r}")
