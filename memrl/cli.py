@@ -106,8 +106,8 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
         os.environ[ONE_LINE_ENV] = "1"
     try:
         return main()
-    except signals.Interrupted as stop:  # before the task started (composition, checks)
-        print(f"interrupted by {stop.name}", file=sys.stderr)
+    except signals.Interrupted as stop:  # before the task started (composition, checks, Hydra's files)
+        print(interrupted_before_task(stop), file=sys.stderr)
         sys.exit(stop.exit_status)
     except Exception as err:
         if not (one_line_errors and is_user_error(err)):
@@ -122,13 +122,45 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
                 os.environ[key] = value
 
 
+def interrupted_before_task(stop: signals.Interrupted) -> str:
+    """The line for a signal that came before :func:`run_task` took over: during composition
+    and the start checks (nothing made: ``interrupted by SIGTERM``), or once Hydra had made the
+    run folder (``.hydra/``, the log), which is then handled as a stop before the first
+    checkpoint (:func:`stopped_line`: the new folder is removed, the command printed)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    from omegaconf import OmegaConf
+
+    cfg = HydraConfig.instance().cfg
+    where = OmegaConf.select(cfg, "hydra.runtime.output_dir", default=None) if cfg is not None else None
+    if where is None or not Path(str(where)).is_dir() or \
+            OmegaConf.select(cfg, "hydra.mode", default=None) == RunMode.MULTIRUN:
+        return f"interrupted by {stop.name}"
+    overrides = [str(o) for o in OmegaConf.select(cfg, "hydra.overrides.task", default=[]) or []]
+    return stopped_line(stop, cfg, Path(str(where)), overrides)  # type: ignore[arg-type]
+
+
 def remove_if_bare(run_dir: Path) -> bool:
-    """Remove a run folder that holds only what Hydra wrote before the task (True if removed)."""
+    """Remove a run folder that holds only what Hydra wrote before the task (True if removed),
+    and the folders Hydra made above it that are left empty (``outputs/deploy/runs/``). A
+    folder that existed before this run is kept, its ``.hydra/`` files put back as they were."""
+    from memrl.hydra_callbacks import before_start
+
     if not run_dir.is_dir():
         return False
     if any(p.name not in HYDRA_FILES and p.suffix != ".log" for p in run_dir.iterdir()):
         return False
+    before = before_start(run_dir)
+    if before is not None and before.existed == run_dir.absolute():
+        before.restore()
+        return False
     shutil.rmtree(run_dir, ignore_errors=True)
+    if before is not None:  # the empty folders Hydra made above it
+        folder = run_dir.absolute().parent
+        while folder != before.existed and before.existed in folder.parents and folder.is_dir() \
+                and not any(folder.iterdir()):
+            folder.rmdir()
+            folder = folder.parent
     return True
 
 
@@ -176,6 +208,10 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             if is_user_error(err):
                 undo_hydra_files(out, hydra_cfg.output_subdir, log_file, log_stat)
+                from memrl.hydra_callbacks import before_start
+
+                if (before := before_start(out)) is not None:
+                    before.restore()  # a folder that existed: its .hydra/*.yaml as they were
             remove_if_bare(out)
             if is_user_error(err) and os.environ.get(ONE_LINE_ENV):
                 # here, not in run_hydra: Hydra would first print a line of its own
@@ -196,6 +232,9 @@ def stopped_line(stop: signals.Interrupted, cfg: DictConfig, out: Path, override
     nothing to resume: its folder is removed."""
     import shlex
 
+    from memrl.stop import output_overrides
+
+    overrides = [*overrides, *(o for o in output_overrides() if o not in overrides)]  # hydra.run.dir
     task = str(cfg.get("task_name", "train"))
     if task == "train":
         from memrl.dqn import checkpoint as ckpt

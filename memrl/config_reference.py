@@ -67,10 +67,11 @@ def field_docs(cls: type) -> dict[str, str]:
 @cache
 def env_check_ranges() -> dict[str, str]:
     """Env key -> the ranges its check states: the messages of the ``_check(cond, "<key>",
-    "<message>")`` calls in ``memrl/envs/config.py`` (checks whose key is a constant string)."""
+    "<message>")`` calls in ``memrl/envs/config.py`` (checks whose key is a constant string),
+    after the rule of the key alone (``RULES``)."""
     from memrl.envs import config as env_config
 
-    out: dict[str, list[str]] = {}
+    out: dict[str, list[str]] = {key: [valid] for key, (_, valid) in env_config.RULES.items()}
     for node in ast.walk(ast.parse(inspect.getsource(env_config))):
         if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
                 and node.func.id == "_check" and len(node.args) >= 3):

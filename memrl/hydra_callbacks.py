@@ -36,6 +36,60 @@ def check_config(config: DictConfig) -> None:
     run_dir = OmegaConf.select(config, "hydra.run.dir")
     if run_dir is not None:
         check_writable(run_dir, "paths.output_root")  # before Hydra makes the run folder
+        remember_start(Path(str(run_dir)))
+
+
+class Before:
+    """What a single run's folder looked like before Hydra wrote into it (recorded by the start
+    checks, which run first): the deepest of its folders that existed, and the bytes and times
+    of its ``.hydra/*`` files. A refused start puts them back (:func:`memrl.cli.run_task`)."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = run_dir.absolute()
+        self.existed = existing_ancestor(self.run_dir)
+        hydra_dir = self.run_dir / ".hydra"
+        self.files = {f: (f.read_bytes(), f.stat()) for f in hydra_dir.iterdir() if f.is_file()} \
+            if hydra_dir.is_dir() else {}
+        self.logs = set(self.run_dir.glob("*.log"))
+
+    def restore(self) -> None:
+        """The ``.hydra/*`` files back as they were (a file Hydra added there goes, and a log it
+        started in a folder that existed)."""
+        import os
+
+        if self.existed == self.run_dir:  # a log Hydra started in a folder that was there
+            for log in set(self.run_dir.glob("*.log")) - self.logs:
+                log.unlink()
+        hydra_dir = self.run_dir / ".hydra"
+        if not self.files or not hydra_dir.is_dir():
+            return
+        for f in hydra_dir.iterdir():
+            if f.is_file() and f not in self.files:
+                f.unlink()
+        for f, (data, st) in self.files.items():
+            f.write_bytes(data)
+            os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+STARTS: dict[Path, Before] = {}
+"""Run folder -> :class:`Before`, for the single runs this process started."""
+
+
+def remember_start(run_dir: Path) -> None:
+    STARTS[run_dir.absolute()] = Before(run_dir)
+
+
+def before_start(run_dir: Path) -> Before | None:
+    """What :func:`remember_start` recorded for ``run_dir`` (None: not started here)."""
+    return STARTS.get(run_dir.absolute())
+
+
+def existing_ancestor(path: Path) -> Path:
+    """``path`` or its deepest ancestor that exists."""
+    path = path.absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
 
 
 def sweep_jobs(config: DictConfig) -> list[list[str]]:

@@ -25,6 +25,7 @@ from typing import Any, get_type_hints
 
 from memrl.data.recipe import DemoRecipe
 from memrl.errors import EXPLAINERS, config_error
+from memrl.fields import SEED_MAX, spec
 
 Cfg = Any
 """The composed ``train`` config (a DictConfig)."""
@@ -189,9 +190,9 @@ def mode_of(cfg_or_name: Any) -> ModeSpec:
 
 def by_label(label: str) -> ModeSpec:
     """The mode whose Table III label is ``label``."""
-    for spec in MODES.values():
-        if spec.label == label:
-            return spec
+    for mode in MODES.values():
+        if mode.label == label:
+            return mode
     raise KeyError(f"no mode labelled {label!r} (labels: {[m.label for m in MODES.values()]})")
 
 
@@ -267,7 +268,15 @@ def check_stage1(s1: Any) -> None:
           "criterion 'behaviour' needs drive episodes (>= 1)")
     _need(0 < s1.drive_target <= 1, "mode.stage1.drive_target", "must be in (0, 1]")
     _need(0 < s1.holdout_fraction < 1, "mode.stage1.holdout_fraction", "must be in (0, 1)")
-    _need(s1.max_updates >= 1 and s1.check_every >= 1, "mode.stage1.max_updates", "must be >= 1")
+    _need(s1.max_updates >= 1, "mode.stage1.max_updates", f"must be >= 1, got {s1.max_updates}")
+    _need(s1.check_every >= 1, "mode.stage1.check_every", f"must be >= 1, got {s1.check_every}")
+    _need(s1.criterion == "max_updates" or s1.check_every <= s1.max_updates, "mode.stage1.check_every",
+          f"{s1.check_every} updates between checks is more than mode.stage1.max_updates "
+          f"({s1.max_updates}): stage 1 would stop before its first check")
+    _need(s1.criterion != "plateau" or (s1.plateau_checks + 1) * s1.check_every < s1.max_updates,
+          "mode.stage1.plateau_checks", f"a window of {s1.plateau_checks} checks needs "
+          f"{s1.plateau_checks + 1} checks of {s1.check_every} updates, not fewer than "
+          f"mode.stage1.max_updates ({s1.max_updates}): the plateau rule could never stop stage 1")
     _need(s1.lr is None or s1.lr > 0, "mode.stage1.lr", f"must be > 0 or null, got {s1.lr}")
     _need(s1.margin_weight >= 0, "mode.stage1.margin_weight", f"must be >= 0, got {s1.margin_weight}")
 
@@ -300,40 +309,40 @@ class Stage1Config:
     episodes survived and reached the target, 3 seeds (docs/results/issue20, section 6;
     stopping at 75% within 20,000 updates gave 63%). ``+experiment=paper``: eq. (1) alone."""
 
-    max_updates: int = 30_000
+    max_updates: int = spec(30_000, ge=1)
     """Hard cap on stage-1 updates."""
-    check_every: int = 1000
+    check_every: int = spec(1000, ge=1)
     """Updates between convergence checks."""
-    holdout_fraction: float = 0.1
+    holdout_fraction: float = spec(0.1, gt=0, lt=1)
     """Share of demo transitions kept out of the buffer to measure action agreement."""
-    agreement: float = 0.9
+    agreement: float = spec(0.9, gt=0, le=1)
     """Stop when the greedy action equals the demo action on this share of held-out demos."""
-    plateau_checks: int = 4
+    plateau_checks: int = spec(4, ge=1)
     """Stop when the mean TD loss improved less than ``plateau_tol`` (relative) over this many checks."""
-    plateau_tol: float = 0.02
+    plateau_tol: float = spec(0.02, ge=0, lt=1)
     """Relative loss improvement under which the loss counts as flat."""
     criterion: str = "behaviour"
     """agreement | plateau | agreement_or_plateau | behaviour | max_updates. ``behaviour``:
     stop when ``drive_target`` of the drive episodes survive and reach the target lane."""
-    drive_episodes: int = 40
+    drive_episodes: int = spec(40, ge=0)
     """Greedy non-goal episodes driven at every check (0: none): the behaviour itself, in
     scenes of their own seed domain (not the test scenes). Needed by ``behaviour``."""
-    drive_seed: int = 0
+    drive_seed: int = spec(0, ge=0, le=SEED_MAX)
     """Base of the drive episodes' scene seeds."""
-    drive_target: float = 0.875
+    drive_target: float = spec(0.875, gt=0, le=1)
     """``behaviour``: share of drive episodes that must both survive and reach the target (35 of
     40: the drives still rose past 30 of 40, the earlier target 0.75)."""
     keep_best: bool = True
     """With drive episodes: stage 2 (and ``stage1.pt``) start from the checked weights that
     drove best (most episodes surviving and reaching; ties: the later), not the last ones.
     Imitation from few demos swings from check to check (docs/results/stage1-slow-check.md)."""
-    margin_weight: float = 3.0
+    margin_weight: float = spec(3.0, ge=0)
     """Weight of DQfD's large-margin loss on the demos in stage 1 (0: eq. (1) alone, the
     paper's literal reading; with it alone the greedy agent drifts away from the demo actions,
     see docs/results/stage1-slow-check.md)."""
-    margin: float = 0.8
+    margin: float = spec(0.8, ge=0)
     """Margin of that loss [Q units]."""
-    lr: float | None = 1e-3
+    lr: float | None = spec(1e-3, gt=0)
     """Adam learning rate of stage 1 (None: ``agent.lr``). Stage 2 starts a fresh Adam at
     ``agent.lr`` whatever this is. At 2.5e-4 stage 1 learned the steering too slowly
     (docs/results/stage1-slow-check.md)."""
@@ -351,32 +360,32 @@ class Stage2Config:
     of what stage 1 learned (without it both scores dropped after the switch).
     ``+experiment=paper``: plain double DQN as Default."""
 
-    eps_start: float = 0.3
+    eps_start: float = spec(0.3, ge=0, le=1)
     """Stage 2 starts less random than a fresh agent: the stage-1 network already drives."""
-    eps_end: float = 0.05
+    eps_end: float = spec(0.05, ge=0, le=1)
     """Final epsilon."""
-    eps_decay_frames: int = 50_000
+    eps_decay_frames: int = spec(50_000, ge=1)
     """Env steps of the linear decay."""
-    demo_fraction: float = 0.1
+    demo_fraction: float = spec(0.1, ge=0, lt=1)
     """Share of stage 2's buffer (and of each stratified batch) that the prior knowledge keeps
     holding, as in mode A (0: none, the paper's B: stage 2 trains as Default)."""
-    margin_weight: float = 3.0
+    margin_weight: float = spec(3.0, ge=0)
     """Weight of stage 1's large-margin loss (``stage1.margin``) on the demo items of stage 2's
     batches, DQfD's remedy for the drop after pretraining (0: eq. (1) alone, the paper's B).
     Acts only where ``demo_fraction > 0`` (with 0 no batch holds a demo). With both (0.1,
     3) B kept most of what stage 1 learned: at 20,000 env steps, non-goal survival / goal 77 / 73
     against 23 / 43 without (docs/results/issue20)."""
-    lr: float | None = None
+    lr: float | None = spec(None, gt=0)
     """Adam learning rate of stage 2 (None: ``agent.lr``; stage 1 has its own, ``stage1.lr``).
     A smaller rate changes the stage-1 weights less per update: at 6.25e-5 with
     ``n_step=3`` stage 2 ended above its stage 1 on 3 of 5 seeds, at 2.5e-4 on 1 of 5; with
     n = 1 on 2 of 3 (docs/results/issue30/screens.md, sections 23-24). Those stage 1s were
     trained with n = 3; from the default stage 1 (n = 1) the same recipe ended above it on 1
     of 3 seeds (section 26), so neither is a default."""
-    n_step: int | None = None
+    n_step: int | None = spec(None, ge=1)
     """Steps of reward summed per sampled transition in stage 2's buffer, agent data and demos
     alike (None: ``agent.n_step``; stage 1 reads ``agent.n_step``)."""
-    updates_per_round: int | None = None
+    updates_per_round: int | None = spec(None, ge=1)
     """Gradient updates per round (every ``agent.train_every`` env steps) in stage 2: its replay
     ratio (None: ``agent.updates_per_round``). The target network is still copied every
     ``agent.target_update_interval`` updates, so more often per env step. At 4 stage 2 ended
@@ -410,7 +419,7 @@ class MarginConfig:
     """Mode A's ``stage1``: only the margin of its large-margin loss (mode B's stage 1 has the
     same key)."""
 
-    margin: float = 0.8
+    margin: float = spec(0.8, ge=0)
     """Margin of the large-margin loss [Q units]."""
 
 
@@ -420,9 +429,9 @@ class ModeAConfig(DemoKeys):
 
     name: str = "A"
     """default | A | B (``+mode=A|B``)."""
-    demo_fraction: float = 0.1
+    demo_fraction: float = spec(0.1, gt=0, lt=1)
     """Share of the buffer permanently held by prior knowledge."""
-    margin_weight: float = 3.0
+    margin_weight: float = spec(3.0, ge=0)
     """Weight of the large-margin loss (``stage1.margin``) on the demo items of each batch, as
     DQfD (0: eq. (1) alone, the paper's A); mode B's is ``stage2.margin_weight``. At 20,000 env
     steps A's non-goal goal rose from 0.7 to 19.0 with it, higher on every seed

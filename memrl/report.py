@@ -16,7 +16,7 @@ import logging
 import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -77,12 +77,28 @@ def evaluate_missing(cfg: DictConfig) -> list[EvalResult]:
                 refuse_other_protocol(cand.out_dir, protocol, remedy="overwrite=true to replace it, "
                                       "or evaluate_missing=false to report the evaluations there are")
             todo.append(cand)
+    if todo:  # before evaluating anything: the report would find two protocols afterwards
+        from memrl.evaluation import stats
+        from memrl.evaluation.results import find_results
+        from memrl.evaluation.session import is_complete
+
+        planned = {Path(str(c.out_dir)).resolve() for c in todo}
+        kept = [r for r in find_results([str(x) for x in cfg.runs])
+                if is_complete(r) and Path(r.path).resolve() not in planned]
+        stats.check_protocols([*kept, *(_planned_result(c, wanted) for c in todo)])
     done = []
     for cand in todo:
         log.info("evaluating %s (%s)", cand.meta["run"], cand.name)
         done.append(evaluate_candidate(cand, protocol, workers=workers_of(cfg),
                                        batch=int(cfg.batch), progress=bool(cfg.progress)))
     return done
+
+
+def _planned_result(cand: Any, protocol_id: str) -> Any:
+    """What :func:`stats.check_protocols` reads of an evaluation still to be made."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(protocol_id=protocol_id, path=cand.out_dir)
 
 
 def _rows_named(groups: list[RowGroup], name: str) -> list[RowGroup]:
@@ -209,8 +225,8 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
                 "no evaluation (eval.json)")
         raise config_error("runs", f"{what} under {', '.join(map(str, cfg.runs))}; "
                            "run python -m memrl.evaluate first or set evaluate_missing=true")
+    pid = stats.check_protocols(results)  # before the report's folder is made
     out.mkdir(parents=True, exist_ok=True)
-    pid = stats.check_protocols(results)
     scfg = stats_config(cfg)
     rows = stats.table(results, scfg)
     diffs = stats.differences(results, [list(p) for p in cfg.comparisons], scfg)

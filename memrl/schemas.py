@@ -136,13 +136,13 @@ def check_train(cfg: DictConfig) -> None:
 
     check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(TrainSchema, cfg)
+    check_env(cfg.env)  # before the relations of check_train_config read env keys
     check_train_config(cfg)
     check_network(cfg.network)
     if cfg.self_play_every and cfg.env.opponent.type == "constant":
         raise config_error("self_play_every", "snapshots join the learned cars' pool; it needs "
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
-    check_env(cfg.env)
     if cfg.env.opponent.type != "constant":  # every pattern must match a past agent that saw these frames
         from memrl.modules.opponents import check_pool_views, pool_views
 
@@ -388,6 +388,10 @@ def check_report(cfg: DictConfig) -> None:
     check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(ReportSchema, cfg)
     check_protocol(cfg.protocol)
+    duration = int(cfg.protocol.duration)
+    if int(cfg.rollouts.crash_frames) > duration:
+        raise config_error("rollouts.crash_frames", f"{cfg.rollouts.crash_frames} steps before a crash "
+                           f"is a window longer than an episode (protocol.duration={duration})")
     for pair in cfg.comparisons:
         if len(pair) != 2:
             raise config_error("comparisons", f"expected pairs [a, b] of row labels, got {list(pair)}")
@@ -589,6 +593,9 @@ def check_preview(cfg: DictConfig) -> None:
     check_known_keys(cfg)  # a key added with + that no schema has
     check_fields(PreviewSchema, cfg)
     check_env(cfg.env)
+    if max(int(x) for x in cfg.steps) > int(cfg.env.duration):
+        raise config_error("steps", f"{list(cfg.steps)}: a step after the episode's end "
+                           f"(env.duration={cfg.env.duration}) shows nothing")
 
 
 # ---------------------------------------------------------------------------------------------

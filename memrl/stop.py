@@ -77,3 +77,19 @@ class _Deferred:
 
     def __exit__(self, *exc: object) -> None:
         self.guard._deferring = False
+
+
+OUTPUT_KEYS = ("hydra.run.dir", "hydra.output_subdir", "paths.output_root")
+"""Overrides of where a command's folder goes, kept in a printed re-run command (else the
+re-run's log and ``.hydra/`` land in another folder)."""
+
+
+def output_overrides() -> list[str]:
+    """This Hydra run's overrides of :data:`OUTPUT_KEYS`, unquoted (none outside a Hydra run)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return []
+    given = HydraConfig.get().overrides  # Hydra keeps its own keys' overrides apart from the task's
+    every = [str(o) for o in [*given.hydra, *given.task]]
+    return [o for o in every if o.split("=", 1)[0].lstrip("+") in OUTPUT_KEYS]

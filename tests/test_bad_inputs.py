@@ -103,6 +103,26 @@ ROWS = [
     ("train", ["+mode=A", "mode.demo_fraction=1.5"], "mode.demo_fraction"),
     ("train", ["+mode=B", "mode.example.action_noise=1"], "mode.example.action_noise"),
     ("train", ["+mode=A", "mode.example.episodes=0"], "mode.example.episodes"),
+    # issue 64 item 5: values that meant nothing or something else
+    ("train", ["agent.grad_clip=-1"], "'agent.grad_clip': must be >= 0, got -1.0"),
+    ("train", ["agent.grad_clip=nan"], "'agent.grad_clip'"),
+    ("train", ["agent.n_step=301"], "'agent.n_step': 301 steps summed is longer than an episode"),
+    ("train", ["+mode=B", "mode.stage1.margin=-1"], "'mode.stage1.margin'"),
+    ("train", ["+mode=B", "mode.stage1.plateau_checks=0"], "'mode.stage1.plateau_checks'"),
+    ("train", ["+mode=B", "mode.stage1.plateau_tol=nan"], "'mode.stage1.plateau_tol'"),
+    ("train", ["+mode=B", "mode.stage1.check_every=0"], "'mode.stage1.check_every': must be >= 1"),
+    ("train", ["+mode=B", "mode.stage1.check_every=40000"],
+     "'mode.stage1.check_every': 40000 updates between checks is more than mode.stage1.max_updates"),
+    ("train", ["+mode=B", "mode.stage1.criterion=plateau", "mode.stage1.plateau_checks=30"],
+     "'mode.stage1.plateau_checks': a window of 30 checks"),
+    ("train", ["buffer.capacity=1000000000"], "'buffer.capacity': 1000000000 transitions need at least"),
+    ("deploy", ["deploy.speed_pid.p=inf"], "'deploy.speed_pid.p': must be >= 0, got inf"),
+    ("deploy", ["deploy.speed_pid.p=nan"], "'deploy.speed_pid.p'"),
+    ("deploy", ["deploy.sensors.gyro_bias=nan"], "'deploy.sensors.gyro_bias': must be a finite number"),
+    ("evaluate", ["policy=scripted", "protocol.seed=-1"], "'protocol.seed'"),
+    ("report", ["runs=[.]", "rollouts.crash_frames=301"],
+     "'rollouts.crash_frames': 301 steps before a crash is a window longer than an episode"),
+    ("preview", ["steps=[0,301]"], "'steps': [0, 301]: a step after the episode's end"),
     # record
     ("record", ["episodes=0"], "episodes"),
     ("record", ["resume=/nonexistent/recording"], "resume"),
@@ -364,6 +384,10 @@ CLI_ROWS = [
     (["memrl.bench", "nope"], "benchmarks"),
     (["memrl.study", "study.train_overrides=['agent.lrr=1']"], "agent.lrr"),
     (["memrl.dagger", "iterations=0"], "'iterations'"),
+    (["memrl.train", "network._target_=os.system"],
+     "config 'network._target_': cannot import 'os.system' (Located non-class"),
+    (["memrl.deploy", "deploy.speed_pid.p=nan"], "config 'deploy.speed_pid.p': must be >= 0, got nan"),
+    (["memrl.train", "buffer.capacity=1000000000"], "config 'buffer.capacity': 1000000000 transitions"),
 ]
 
 
@@ -413,3 +437,154 @@ def test_user_errors_and_bugs_are_told_apart():
     assert is_user_error(FileNotFoundError(2, "No such file or directory", "/a/b"))
     assert "/a/b" in one_line(FileNotFoundError(2, "No such file or directory", "/a/b"))
     assert not is_user_error(ZeroDivisionError("bug")) and exit_status(KeyError("k")) == 1
+
+
+def test_gym_env_refuses_step_none_and_moves_nothing():
+    from memrl.envs.lane_change import LaneChangeEnv
+
+    env = LaneChangeEnv(config={"vehicles_count": 2})
+    env.reset(seed=0)
+    before = (env.steps, [tuple(c.position) for c in env.others])
+    with pytest.raises(ValueError) as info:
+        env.step(None)
+    assert "0..8" in assert_one_line_naming(info.value, "None")
+    assert (env.steps, [tuple(c.position) for c in env.others]) == before
+
+
+@pytest.mark.parametrize("end", ["terminated", "truncated"])
+def test_gym_env_warns_once_when_stepped_after_the_episode_ended(end):
+    import warnings
+
+    from memrl.envs.lane_change import LaneChangeEnv
+    from memrl.envs.vehicles import IDLE
+
+    env = LaneChangeEnv(config={"vehicles_count": 0, "duration": 3, "initial_offset": 0.0})
+    env.reset(seed=0)
+    if end == "terminated":
+        env.vehicle.crashed = True  # a crash ends the episode at the next step
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        flags = [env.step(IDLE)[2:4] for _ in range(3 if end == "truncated" else 1)]
+        assert caught == []  # stepping up to the end says nothing
+        assert flags[-1][0 if end == "terminated" else 1]
+        env.step(IDLE)
+        env.step(IDLE)
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 1 and f"{end} = True" in messages[0] and "reset()" in messages[0], messages
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env.reset(seed=1)
+        env.step(IDLE)
+    assert caught == []  # a new episode starts quiet
+
+
+@pytest.mark.parametrize("num_envs", [None, 2])
+def test_make_env_refuses_a_device_that_is_none_at_one_env_as_at_two(num_envs):
+    from memrl.envs.config import BatchedEnvError
+    from memrl.envs.torchrl_env import make_env
+
+    with pytest.raises(BatchedEnvError) as info:
+        make_env({}, num_envs=num_envs, device="tpu")
+    assert_one_line_naming(info.value, "'tpu'")
+
+
+def _hashes(root: Path) -> dict[str, str]:
+    import hashlib
+
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_report_on_a_garbled_eval_json_is_one_line_and_leaves_no_folders(tmp_path):
+    run = tmp_path / "run"
+    (run / "eval").mkdir(parents=True)
+    (run / "eval" / "eval.json").write_text("{garbled")
+    before = _hashes(tmp_path)
+    proc = cli(["memrl.report", f"runs=[{run}]", "evaluate_missing=false"], tmp_path)
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: {run / 'eval' / 'eval.json'}: not an evaluation memrl can read"), proc.stderr
+    assert not (tmp_path / "outputs").exists() and _hashes(tmp_path) == before
+
+
+def test_a_refused_deploy_leaves_no_empty_output_folders(tmp_path):
+    """The refusal comes after Hydra made ``outputs/deploy/runs/<time>/``: each folder it made
+    goes, the folders that were there stay."""
+    (tmp_path / "outputs").mkdir()
+    proc = cli(["memrl.deploy", "deploy.policy=checkpoint", f"deploy.checkpoint={tmp_path}"], tmp_path)
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"error: {tmp_path}: no trained network found (expected a run folder with "
+        "checkpoints/final.pt, or a final.pt file)"]
+    assert [p.name for p in tmp_path.iterdir()] == ["outputs"] and not any((tmp_path / "outputs").iterdir())
+
+
+def test_read_result_names_a_garbled_or_incomplete_eval_json(tmp_path):
+    from memrl.evaluation.results import read_result
+
+    for text in ("{garbled", "[]", '{"name": "x"}'):
+        (tmp_path / "eval.json").write_text(text)
+        with pytest.raises(ValueError) as info:
+            read_result(tmp_path)
+        assert_one_line_naming(info.value, f"{tmp_path / 'eval.json'}: not an evaluation memrl can read")
+
+
+def test_evaluate_of_a_run_whose_final_pt_was_deleted_names_it_in_one_line(
+        compose_cfg, project, smoke_run):
+    import shutil
+
+    run = project / "run"
+    shutil.copytree(smoke_run, run)
+    (run / "checkpoints" / "final.pt").unlink()
+    before = _hashes(project)
+    out = project / "outputs" / "evaluate" / "runs" / "now"
+    err = refusal(compose_cfg, "evaluate", [f"policy.run={run}"], out)
+    message = assert_one_line_naming(err, f"policy 'run': no finished training run (checkpoints/final.pt) "
+                                          f"in {run}")
+    assert "Error in call to target" not in message and "CheckpointSource" not in message
+    assert _hashes(project) == before and not out.exists()
+
+
+def test_report_of_a_run_evaluated_under_two_protocols_is_refused_before_evaluating(
+        compose_cfg, project, smoke_run):
+    import shutil
+
+    from memrl.evaluate import evaluate
+    from memrl.report import report
+
+    run = project / "run"
+    shutil.copytree(smoke_run, run)
+    small = ["protocol.episodes=1", "protocol.duration=10", "protocol.initial_lanes=[random]",
+             "workers=1", "batch=1", "progress=false"]
+    evaluate(compose_cfg("evaluate", [f"policy.run={run}", *small]), out_dir=project / "x")
+    evaluate(compose_cfg("evaluate", [f"policy.run={run}", "policy.subdir=eval_b", *small,
+                                      "protocol.seed=7"]), out_dir=project / "x")
+    before = _hashes(project)
+    report_args = [f"runs=[{run}]", "fig5=false", "rollouts.rows=[]", "progress=false", *small[:3]]
+    for extra in (["evaluate_missing=false"], ["evaluate_missing=true", "overwrite=true", "protocol.seed=9"]):
+        out = project / "outputs" / "report" / "runs" / "now"
+        with pytest.raises(ValueError) as info:
+            report(compose_cfg("report", [*report_args, *extra]), out)
+        message = assert_one_line_naming(info.value,
+                                         "config 'runs': evaluations made under different protocols")
+        assert str(run / "eval_b") in message
+        assert _hashes(project) == before and not out.exists()  # nothing evaluated, nothing replaced
+
+
+def test_a_start_refused_at_the_dataset_check_leaves_an_existing_folder_as_it_was(tmp_path):
+    """Hydra writes ``.hydra/*.yaml`` and the log before the dataset's own check refuses it:
+    a folder that was there keeps its files, bytes and times."""
+    dataset = tmp_path / "not_a_dataset"
+    dataset.mkdir()
+    folder = tmp_path / "mine"
+    (folder / ".hydra").mkdir(parents=True)
+    for name in ("config.yaml", "hydra.yaml", "overrides.yaml"):
+        (folder / ".hydra" / name).write_text(f"# my own {name}\n")
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.rglob("*") if p.is_file()}
+    proc = cli(["memrl.train", "+mode=A", f"mode.demos_path={dataset}", f"hydra.run.dir={folder}"], tmp_path)
+    assert proc.returncode == USAGE_EXIT, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and str(dataset) in lines[0], proc.stderr
+    after = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.rglob("*") if p.is_file()}
+    assert after == before

@@ -78,7 +78,9 @@ def test_a_trained_policy_drives_the_gym_env_in_three_lines(tmp_path):
         action = policy.act(obs)
         with torch.no_grad():
             assert action == int(net(torch.as_tensor(obs)).argmax(-1))
-        obs, *_ = env.step(action)
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            break
     with pytest.raises(ValueError, match=r"shape \(4, 84, 84\).*frame_stack"):
         policy.act(gym.make(ENV_ID).reset(seed=0)[0])  # a single frame
 

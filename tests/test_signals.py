@@ -211,3 +211,69 @@ def test_interruption_finds_the_signal_behind_other_errors():
     assert signals.interruption(masked) is stop
     assert signals.interruption(RuntimeError("no signal")) is None
     assert signals.interruption(ValueError("x")) is None
+
+
+def test_a_stop_once_hydra_made_the_run_folder_removes_it_and_prints_the_command(tmp_path):
+    """A signal after Hydra wrote ``.hydra/`` and ``train.log`` but before the task took over
+    is a stop before the first checkpoint (docs/errors.md): the folder goes, the command is printed."""
+    import signal as signal_module
+
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict
+
+    from memrl.cli import interrupted_before_task
+    from memrl.configs import register_configs
+    from memrl.signals import Interrupted
+    from tests.conftest import CONF_DIR
+
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["seed=3"], return_hydra_config=True)
+    run = tmp_path / "outputs" / "train" / "runs" / "now"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text("seed: 3\n")
+    (run / "train.log").write_text("")
+    with open_dict(cfg):
+        cfg.hydra.runtime.output_dir = str(run)
+    before = HydraConfig.instance().cfg
+    HydraConfig.instance().set_config(cfg)
+    try:
+        line = interrupted_before_task(Interrupted(signal_module.SIGTERM))
+    finally:
+        HydraConfig.instance().cfg = before
+    assert line == ("interrupted by SIGTERM before the first checkpoint: nothing to resume; "
+                    "start again with: python -m memrl.train seed=3")
+    assert not run.exists()
+
+
+def test_the_go_on_command_of_a_stopped_evaluation_keeps_its_output_folder(tmp_path):
+    """``resume_command`` keeps ``hydra.run.dir``: the re-run's log and ``.hydra/`` land in the
+    same folder, not in a new ``outputs/evaluate/runs/<time>``."""
+    import types
+
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+
+    from memrl.configs import register_configs
+    from memrl.evaluation.session import resume_command
+    from tests.conftest import CONF_DIR
+
+    register_configs()
+    out = tmp_path / "my eval"
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["policy=scripted", f"hydra.run.dir={out}"],
+                      return_hydra_config=True)
+    cand = types.SimpleNamespace(name="scripted", meta={"kind": "driver"})
+    assert resume_command(cand, out) == f"python -m memrl.evaluate policy=scripted resume={out}"
+    before = HydraConfig.instance().cfg
+    HydraConfig.instance().set_config(cfg)
+    try:
+        line = resume_command(cand, out)
+    finally:
+        HydraConfig.instance().cfg = before
+    assert line == f"python -m memrl.evaluate policy=scripted resume={out} 'hydra.run.dir={out}'"

@@ -40,50 +40,51 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from memrl.errors import UserError
+from memrl.fields import SEED_MAX, spec
 
 
 @dataclass
 class VehicleModelConfig:
     """Car driven by the PID loops: longitudinal dynamics and a dynamic bicycle model."""
 
-    mass: float = 1500.0
+    mass: float = spec(1500.0, gt=0)
     """Vehicle mass [kg]."""
-    yaw_inertia: float = 2250.0
+    yaw_inertia: float = spec(2250.0, gt=0)
     """Moment of inertia about the vertical axis [kg m^2]."""
-    cg_to_front: float = 1.2
+    cg_to_front: float = spec(1.2, gt=0)
     """Centre of gravity to front axle [m]."""
-    cg_to_rear: float = 1.6
+    cg_to_rear: float = spec(1.6, gt=0)
     """Centre of gravity to rear axle [m]; wheelbase = cg_to_front + cg_to_rear."""
-    front_cornering_stiffness: float = 80000.0
+    front_cornering_stiffness: float = spec(80000.0, gt=0)
     """Cornering stiffness of the front axle (both tyres) [N/rad]."""
-    rear_cornering_stiffness: float = 90000.0
+    rear_cornering_stiffness: float = spec(90000.0, gt=0)
     """Cornering stiffness of the rear axle [N/rad] (stiffer than front: the car understeers)."""
-    friction: float = 0.9
+    friction: float = spec(0.9, gt=0)
     """Tyre-road friction coefficient; each axle's lateral force is limited to friction x load."""
-    drag_area: float = 0.7
+    drag_area: float = spec(0.7, ge=0)
     """Drag coefficient x frontal area, Cd A [m^2]."""
-    air_density: float = 1.2
+    air_density: float = spec(1.2, ge=0)
     """[kg/m^3]."""
-    rolling_resistance: float = 0.015
+    rolling_resistance: float = spec(0.015, ge=0)
     """Rolling-resistance coefficient (force = coefficient x m g while moving) [-]."""
-    drive_force_max: float = 4000.0
+    drive_force_max: float = spec(4000.0, gt=0)
     """Largest traction force the powertrain delivers [N] (2.7 m/s^2 on 1500 kg)."""
-    brake_force_max: float = 8000.0
+    brake_force_max: float = spec(8000.0, gt=0)
     """Largest braking force [N] (5.3 m/s^2 on 1500 kg)."""
-    accelerator_lag: float = 0.25
+    accelerator_lag: float = spec(0.25, gt=0)
     """Time constant of the first-order lag from force demand to delivered force [s]."""
-    steer_lock: float = 0.6
+    steer_lock: float = spec(0.6, gt=0)
     """Largest road-wheel steering angle [rad] (34 deg)."""
-    steer_rate_max: float = 0.6
+    steer_rate_max: float = spec(0.6, gt=0)
     """Largest road-wheel steering rate [rad/s] (550 deg/s at a 16:1 steering wheel); the
     steering command is a percentage of this rate."""
-    steer_lag: float = 0.05
+    steer_lag: float = spec(0.05, gt=0)
     """Time constant of the first-order lag from rate demand to steering rate [s]."""
-    kinematic_below: float = 2.0
+    kinematic_below: float = spec(2.0, ge=0)
     """Below this speed the lateral motion is kinematic (no tyre slip) [m/s] ..."""
-    dynamic_above: float = 4.0
+    dynamic_above: float = spec(4.0, gt=0)
     """... above this speed it is the dynamic bicycle model; blended in between [m/s]."""
-    integration_dt: float = 0.002
+    integration_dt: float = spec(0.002, gt=0)
     """Internal integration step [s] (the control period is divided into steps of at most this)."""
 
 
@@ -91,19 +92,19 @@ class VehicleModelConfig:
 class SensorConfig:
     """Noisy sensors. Wheel speed and gyro are sampled every control period; GNSS slower."""
 
-    gnss_rate: float = 10.0
+    gnss_rate: float = spec(10.0, gt=0)
     """GNSS position fixes per second [Hz]."""
-    gnss_noise: float = 0.3
+    gnss_noise: float = spec(0.3, gt=0)
     """Standard deviation of each GNSS coordinate [m]."""
-    gnss_bias: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    gnss_bias: list[float] = spec([0.0, 0.0], finite=True)
     """Constant offset of the GNSS position (x, y) [m] (not modelled by the filter)."""
-    wheel_speed_noise: float = 0.1
+    wheel_speed_noise: float = spec(0.1, gt=0)
     """Standard deviation of the wheel-speed reading [m/s]."""
-    wheel_speed_bias: float = 0.05
+    wheel_speed_bias: float = spec(0.05, finite=True)
     """Constant offset of the wheel-speed reading [m/s] (estimated by the filter)."""
-    gyro_noise: float = 0.01
+    gyro_noise: float = spec(0.01, gt=0)
     """Standard deviation of the yaw-rate reading [rad/s] (0.57 deg/s)."""
-    gyro_bias: float = 0.005
+    gyro_bias: float = spec(0.005, finite=True)
     """Constant offset of the yaw-rate reading [rad/s] (estimated by the filter)."""
 
 
@@ -117,29 +118,29 @@ class EstimatorConfig:
     Measurement noises are the sensors' (``sensors.*_noise``).
     """
 
-    jerk_noise: float = 2.0
+    jerk_noise: float = spec(2.0, gt=0)
     """White longitudinal jerk driving the acceleration [m/s^3 per sqrt(Hz)]."""
-    yaw_jerk_noise: float = 0.5
+    yaw_jerk_noise: float = spec(0.5, gt=0)
     """White yaw jerk driving the yaw acceleration [rad/s^3 per sqrt(Hz)]."""
-    slip_gain: float = 1.2
+    slip_gain: float = spec(1.2, ge=0)
     """Side-slip angle per unit curvature [m]: the filter moves the car along heading + this x
     curvature. The bicycle model's steady-state value is l_r - m l_f v^2 / (L C_r): 1.6 m at
     standstill, 1.14 m at 8 m/s on the default car; 0 ignores side slip."""
-    position_noise: float = 0.03
+    position_noise: float = spec(0.03, gt=0)
     """Unmodelled motion (slip transients, road) [m per sqrt(s)]."""
-    heading_noise: float = 0.003
+    heading_noise: float = spec(0.003, gt=0)
     """Unmodelled heading change [rad per sqrt(s)]."""
-    speed_bias_noise: float = 0.001
+    speed_bias_noise: float = spec(0.001, gt=0)
     """Drift of the wheel-speed bias [m/s per sqrt(s)]."""
-    gyro_bias_noise: float = 0.0001
+    gyro_bias_noise: float = spec(0.0001, gt=0)
     """Drift of the gyro bias [rad/s per sqrt(s)]."""
-    initial_heading_std: float = 0.05
+    initial_heading_std: float = spec(0.05, gt=0)
     """Uncertainty of the initial heading (the road direction) [rad]."""
-    initial_speed_bias_std: float = 0.2
+    initial_speed_bias_std: float = spec(0.2, gt=0)
     """Uncertainty of the initial wheel-speed bias [m/s]."""
-    initial_gyro_bias_std: float = 0.01
+    initial_gyro_bias_std: float = spec(0.01, gt=0)
     """Uncertainty of the initial gyro bias [rad/s]."""
-    min_speed: float = 1.0
+    min_speed: float = spec(1.0, gt=0)
     """Curvature is yaw rate / max(speed, min_speed) [m/s]: bounded near standstill."""
 
 
@@ -147,13 +148,13 @@ class EstimatorConfig:
 class PIDConfig:
     """One PID loop; gains in output units per error unit (see the module docstring)."""
 
-    p: float = 2000.0
+    p: float = spec(2000.0, ge=0)
     """Proportional gain [output per error]."""
-    i: float = 100.0
+    i: float = spec(100.0, ge=0)
     """Integral gain [output per (error x s)]."""
-    d: float = 0.0
+    d: float = spec(0.0, ge=0)
     """Derivative gain [output per (error / s)], on the measurement (no set-point kick)."""
-    output_limits: list[float] = field(default_factory=lambda: [-100.0, 100.0])
+    output_limits: list[float] = spec([-100.0, 100.0], finite=True)
     """Output clamp (low, high) [output units]."""
     anti_windup: bool = True
     """Stop integrating while the output is clamped and the error would push it further."""
@@ -168,13 +169,13 @@ class DeployConfig:
     agent from ``checkpoint``) or 'random' (uniform actions, for plumbing checks)."""
     checkpoint: str | None = None
     """Path of a trained checkpoint, for policy=checkpoint."""
-    episodes: int = 20
+    episodes: int = spec(20, ge=1)
     """Number of episodes."""
-    seed: int = 0
+    seed: int = spec(0, ge=0, le=SEED_MAX)
     """Seed of the first episode (episode k uses seed + k), of the sensors and of the policy."""
-    control_rate: float = 100.0
+    control_rate: float = spec(100.0, gt=0)
     """PID, sensor and filter rate [Hz]; the agent decides every env ``dt`` (0.1 s)."""
-    plot_episode: int = 0
+    plot_episode: int = spec(0, ge=0)
     """Episode drawn in ``deploy.png``."""
     compare_simulator: bool = True
     """Also run the policy on the same seeds in the plain simulator (instant commands, true
@@ -204,7 +205,17 @@ def _positive(obj: object, prefix: str, *names: str) -> None:
 
 
 def check_deploy_config(cfg: DeployConfig) -> DeployConfig:
-    """Check every value of a deploy config; raise :class:`DeployConfigError` naming the key."""
+    """Check every value of a deploy config; raise :class:`DeployConfigError` naming the key
+    (each key's range, :func:`memrl.fields.check_fields`: ``config 'deploy.<key>': ...``)."""
+    import dataclasses
+
+    from memrl.errors import ConfigError
+    from memrl.fields import check_fields
+
+    try:
+        check_fields(DeployConfig, dataclasses.asdict(cfg), "deploy.")
+    except ConfigError as err:
+        raise DeployConfigError(str(err)) from None
     if cfg.policy not in POLICIES:
         raise DeployConfigError(
             f"deploy config 'policy': expected one of {POLICIES}, got {cfg.policy!r}")

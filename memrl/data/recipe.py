@@ -13,6 +13,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from memrl.fields import SEED_MAX, spec
+
 RECIPE_ENV_KEYS = ("initial_lane", "vehicles_count", "target_lane", "initial_speed",
                    "initial_offset", "initial_heading", "initial_curvature", "other_speed")
 """Env keys a recipe may change for recording: they pick which episodes are drawn, not what a
@@ -31,13 +33,13 @@ class DemoRecipe:
     positions (``merge_window``) and leaves small speed errors alone (``speed_tolerance``).
     """
 
-    episodes: int = 240
+    episodes: int = spec(240, ge=1)
     """Episodes recorded; only stable ones (no collision, target reached) are kept."""
-    seed: int = 0
+    seed: int = spec(0, ge=0, le=SEED_MAX)
     """Episode i is reset with seed + i."""
     tail_steps: Any = 30
     """Steps kept after the target lane is reached (null: whole episodes)."""
-    action_noise: float = 0.2
+    action_noise: float = spec(0.2, ge=0, lt=1)
     """Probability per step of a random action, not stored (0: none)."""
     driver: dict[str, Any] = field(
         default_factory=lambda: {"merge_window": 12.0, "speed_tolerance": 0.3})

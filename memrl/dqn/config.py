@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 from omegaconf import DictConfig
 
-from memrl.errors import UserError
+from memrl.errors import ConfigError, UserError
+from memrl.fields import spec
 from memrl.modes import Stage1Config, Stage2Config, mode_of  # noqa: F401  (the mode B schemas)
 
 PRECISIONS = ("auto", "float32", "bfloat16")
@@ -22,55 +23,55 @@ EXPLORATIONS = ("epsilon", "ez_greedy", "ez_speed", "speed_only", "boltzmann")  
 class AgentConfig:
     """Double DQN learner (Table II where the paper fixes a value)."""
 
-    gamma: float = 0.95
+    gamma: float = spec(0.95, gt=0, le=1)
     """Discount factor (Table II)."""
-    n_step: int = 1
+    n_step: int = spec(1, ge=1)
     """Steps of reward summed per sampled transition (n-step returns, :mod:`memrl.data.nstep`):
     its reward is ``sum_{i<m} gamma^i r_{t+i}`` over up to ``n_step`` steps of its episode, the
     bootstrap ``gamma^m max Q(s_{t+m})``; a crash within the window ends the sum without a
     bootstrap. 1: the 1-step target of the paper. Applies to agent data and demos alike."""
-    advantage_learning: float = 0.0
+    advantage_learning: float = spec(0.0, ge=0, lt=1)
     """Advantage learning's alpha in [0, 1) (Bellemare et al., 2016; :class:`memrl.dqn.losses.TDTerm`):
     every TD target less alpha (max_b Q_target(s, b) - Q_target(s, a)), which multiplies the
     gap between the best action and the others by 1 / (1 - alpha) (their paper: 0.9). 0: eq. (1).
     Every stage; costs one forward of the target network per update."""
-    lr: float = 2.5e-4
+    lr: float = spec(2.5e-4, gt=0)
     """Adam learning rate."""
-    batch_size: int = 32
+    batch_size: int = spec(32, ge=1)
     """Transitions per update."""
-    target_update_interval: int = 500
+    target_update_interval: int = spec(500, ge=1)
     """Updates between hard copies of the online network into the target network."""
-    train_every: int = 4
+    train_every: int = spec(4, ge=1)
     """Env steps between update rounds."""
-    updates_per_round: int = 1
+    updates_per_round: int = spec(1, ge=1)
     """Gradient updates per round."""
-    warmup_frames: int = 500
+    warmup_frames: int = spec(500, ge=0)
     """Env steps with random actions before the first update (agent data only)."""
-    eps_start: float = 1.0
+    eps_start: float = spec(1.0, ge=0, le=1)
     """Initial epsilon of the linearly decaying epsilon-greedy policy (Table II)."""
-    eps_end: float = 0.05
+    eps_end: float = spec(0.05, ge=0, le=1)
     """Final epsilon."""
-    eps_decay_frames: int = 50_000
+    eps_decay_frames: int = spec(50_000, ge=1)
     """Env steps over which epsilon decays linearly from eps_start to eps_end."""
     exploration: str = "epsilon"
     """How the acting policy explores (:mod:`memrl.dqn.exploration`): ``epsilon`` (the paper's
     epsilon-greedy), ``ez_greedy`` (a random action repeated for a zeta-distributed duration),
     ``ez_speed`` (a random speed change held so, the curvature change greedy), ``speed_only``
     (random actions change only the speed) or ``boltzmann`` (softmax over Q)."""
-    ez_mu: float = 2.0
+    ez_mu: float = spec(2.0, gt=0)
     """``ez_greedy`` / ``ez_speed``: exponent of the duration distribution P(n) ~ n^-mu."""
-    ez_max_duration: int = 50
+    ez_max_duration: int = spec(50, ge=1)
     """``ez_greedy`` / ``ez_speed``: longest repeat [action steps]."""
-    temperature_start: float = 1.0
+    temperature_start: float = spec(1.0, gt=0)
     """``boltzmann``: initial temperature [Q units], annealed like epsilon over eps_decay_frames."""
-    temperature_end: float = 0.05
+    temperature_end: float = spec(0.05, gt=0)
     """``boltzmann``: final temperature [Q units]."""
-    grad_clip: float = 10.0
+    grad_clip: float = spec(10.0, ge=0)
     """Max global gradient norm (0: no clipping)."""
     pool_first: bool = True
     """Max-pool before ReLU in the Q-network: the same outputs as Table I's ReLU-then-pool
     (ReLU is monotonic) with a quarter of the ReLU work."""
-    threads: int = 1
+    threads: int = spec(1, ge=0)
     """torch intra-op threads (0: leave torch's default, one per core). 1 is the robust fastest
     on 2 cores (``python -m memrl.bench learner``): a second OpenMP thread makes an update about
     1.5x faster on an idle machine, but about 10x slower as soon as another process holds a
@@ -87,7 +88,7 @@ class AgentConfig:
     FC head, Q-values and loss stay float32); ``auto``: bfloat16 where the CPU has native
     bf16 (oneDNN's check, e.g. AVX512-BF16 or AMX), else float32. Measured ~2x faster updates
     at batch 32 on such a CPU (``python -m memrl.bench learner``), same loss curve."""
-    augment_shift: int = 0
+    augment_shift: int = spec(0, ge=0, le=20)
     """DrQ-style random shifts of each sampled stack by up to this many pixels (0: off;
     :mod:`memrl.dqn.augment`): replicate-padded, one offset per stack (its 4 frames move
     together), independent for ``pixels`` and ``next.pixels``; sampled batches only, never
@@ -104,19 +105,19 @@ class AgentConfig:
 class BufferConfig:
     """Replay buffer."""
 
-    capacity: int = 100_000
+    capacity: int = spec(100_000, ge=1)
     """Total transitions held (Table II: 1e5), prior knowledge included in mode A."""
     compact: bool = True
     """Store each 84x84 frame once (a frame ring; stacks rebuilt at sampling: 1.41 GB for
     1e5 transitions) instead of both full stacks per transition (5.6 GB); same samples."""
-    crash_share: float = 0.0
+    crash_share: float = spec(0.0, ge=0, lt=1)
     """Share of the agent part of every batch drawn from the stored transitions that end in a
     crash, the rest uniform (memrl/data/crash_sampler.py); 0: uniform, as the paper."""
-    priority: float = 0.0
+    priority: float = spec(0.0, ge=0, le=1)
     """Prioritized replay of the agent part (Schaul et al., 2016; memrl/data/priority_sampler.py):
     the priority exponent alpha, items drawn in proportion to ``(|TD error| + 1e-3) ** alpha``;
     0: uniform, as the paper. Excludes ``crash_share``. Dopamine's Rainbow uses 0.5."""
-    priority_beta: float = 0.5
+    priority_beta: float = spec(0.5, ge=0, le=1)
     """Importance-sampling exponent of prioritized replay (0: no correction, 1: full); fixed
     over the run, as Dopamine's Rainbow (0.5)."""
 
@@ -132,7 +133,18 @@ def _need(ok: bool, key: str, message: str) -> None:
 
 def check_train_config(cfg: DictConfig) -> None:
     """Check values that a schema's types cannot: ranges and choices; names the bad key."""
+    from memrl.fields import check_fields
+
     a = cfg.agent
+    spec = mode_of(cfg)  # an unknown mode.name is refused here
+    try:  # each key's range (NaN never passes)
+        check_fields(AgentConfig, a, "agent.")
+        check_fields(BufferConfig, cfg.buffer, "buffer.")
+        check_fields(spec.schema, cfg.mode, "mode.")
+    except ConfigError as err:
+        raise TrainConfigError(str(err)) from None
+    _need(a.n_step <= cfg.env.duration, "agent.n_step",
+          f"{a.n_step} steps summed is longer than an episode (env.duration={cfg.env.duration})")
     _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
     _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
     _need(a.n_step >= 1, "agent.n_step", f"must be >= 1, got {a.n_step}")
@@ -169,7 +181,9 @@ def check_train_config(cfg: DictConfig) -> None:
           "agent.temperature_start", "need 0 < temperature_end <= temperature_start")
     _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity",
           f"must be >= agent.batch_size ({a.batch_size}), got {cfg.buffer.capacity}")
-    spec = mode_of(cfg)  # an unknown mode.name is refused here
+    from memrl.data.buffer_size import check_buffer_fits
+
+    check_buffer_fits(cfg)  # before anything is allocated
     spec.check(cfg)
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")

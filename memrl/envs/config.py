@@ -233,13 +233,18 @@ AGENT_X = 500.0
 
 
 def _int(ge: int) -> tuple[Any, str]:
-    return (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= ge), f"need an int >= {ge}"
+    def ok(v: Any) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool) and v >= ge
+    ok.outside = [ge - 1]  # type: ignore[attr-defined]  # values it refuses (tests walk them)
+    return ok, f"need an int >= {ge}"
 
 
 def _num(gt: float | None = None, ge: float | None = None, le: float | None = None) -> tuple[Any, str]:
     def ok(v: Any) -> bool:
         return (isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
                 and (gt is None or v > gt) and (ge is None or v >= ge) and (le is None or v <= le))
+    ok.outside = [math.nan, math.inf, *([gt] if gt is not None else []),  # type: ignore[attr-defined]
+                  *([ge - 1] if ge is not None else []), *([le + 1] if le is not None else [])]
     bounds = [f"> {gt}" if gt is not None else "", f">= {ge}" if ge is not None else "",
               f"<= {le}" if le is not None else ""]
     return ok, "need a finite number " + " and ".join(b for b in bounds if b)
@@ -250,6 +255,7 @@ def _pair(v: Any) -> bool:
             and v[0] <= v[1])
 
 
+_pair.outside = [[math.nan, 1.0], [2.0, 1.0], [-1.0, 1.0], [0.0, math.inf]]  # type: ignore[attr-defined]
 _RANGE = (_pair, "expected [low, high] finite numbers with 0 <= low <= high")
 
 RULES: dict[str, tuple[Any, str]] = {

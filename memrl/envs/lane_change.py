@@ -110,6 +110,8 @@ class LaneChangeEnv(AbstractEnv):
         self._episode = 0
         self._stack: np.ndarray | None = None
         self._stack_key: tuple[int, int] | None = None
+        self._ended: str | None = None  # 'terminated' / 'truncated' once the episode has ended
+        self._warned_ended = False
         super().__init__(config, render_mode)
 
     @classmethod
@@ -225,6 +227,26 @@ class LaneChangeEnv(AbstractEnv):
         return [car for car in self.others if car.controller is controller]
 
     # ------------------------------------------------------------------------------ step
+    def reset(self, *args: Any, **kwargs: Any) -> tuple[np.ndarray, dict]:
+        self._ended, self._warned_ended = None, False
+        return super().reset(*args, **kwargs)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One action step (highway-env's), refusing ``None`` (highway-env would move the other
+        cars and not the agent) and warning once when the episode has already ended, as
+        gymnasium's own envs and its ``PassiveEnvChecker`` do."""
+        validate_action(action)  # None and every other non-action: refused, nothing moves
+        if self._ended is not None and not self._warned_ended:
+            from gymnasium import logger
+
+            logger.warn(f"step() called after this episode returned {self._ended} = True; "
+                        "call reset() before stepping again (what follows is undefined)")
+            self._warned_ended = True
+        obs, reward, terminated, truncated, info = super().step(action)
+        if self._ended is None and (terminated or truncated):
+            self._ended = "terminated" if terminated else "truncated"
+        return obs, reward, terminated, truncated, info
+
     def _simulate(self, action: Any = None) -> None:
         """One action step: every car takes its action, then all move by ``dt``."""
         self._risk_before = self.state_risk() if self.cfg.shaping.weight > 0 else 0.0

@@ -22,7 +22,7 @@ from torchrl.envs import (
 from torchrl.envs.libs.gym import GymEnv, default_info_dict_reader
 
 from memrl.envs import ENV_ID, register_envs
-from memrl.envs.batched import INFO_KEYS
+from memrl.envs.batched import INFO_KEYS, resolve_device
 from memrl.envs.config import validate_env_config
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.stride import history_length
@@ -116,6 +116,7 @@ def make_env(
         if seed is not None:
             batched.set_seed(seed)
         return batched
+    resolve_device(device)  # one env runs on the CPU, but a device that is none is refused alike
     base = GymEnv(ENV_ID, config=values, render_mode=render_mode, device="cpu",
                   categorical_action_encoding=True)
     spec = Composite({k: Unbounded(shape=(), dtype=torch.bool) for k in INFO_KEYS})

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from memrl.evaluation.protocol import INITIAL_LANES
-from memrl.fields import spec
+from memrl.fields import SEED_MAX, spec
 
 UNITS = ("episodes", "env_steps")
 """What ``eval.every`` counts."""
@@ -25,7 +25,7 @@ class PeriodicEvalConfig:
     less than one collection round."""
     episodes: int = spec(10, ge=1)
     """Episodes per initial-lane setting at each evaluation."""
-    seed: int = spec(0, ge=0)
+    seed: int = spec(0, ge=0, le=SEED_MAX)
     """Base of the periodic scenes' seeds."""
     initial_lanes: list[str] = spec(list(INITIAL_LANES), choices=INITIAL_LANES, nonempty=True)
     """Initial-lane settings to evaluate."""

@@ -150,6 +150,10 @@ class PolicySource(ABC):
         """The policies to evaluate."""
 
 
+class RunNotFoundError(UserError, FileNotFoundError):
+    """``policy.run`` names no folder, or none with a finished run (``checkpoints/final.pt``)."""
+
+
 def find_runs(paths: str | Path | Sequence[str | Path]) -> list[Path]:
     """Finished training runs (folders with ``checkpoints/final.pt``) at or below ``paths``."""
     items = [paths] if isinstance(paths, str | Path) else list(paths)
@@ -157,13 +161,14 @@ def find_runs(paths: str | Path | Sequence[str | Path]) -> list[Path]:
     for item in items:
         p = Path(item)
         if not p.exists():
-            raise FileNotFoundError(f"policy 'run': no such folder {p}")
+            raise RunNotFoundError(f"policy 'run': no such folder {p}")
         if (p / "checkpoints" / "final.pt").is_file():
             runs.append(p)
         else:
             runs += sorted(f.parent.parent for f in p.glob("**/checkpoints/final.pt"))
     if not runs:
-        raise FileNotFoundError(f"policy 'run': no finished training run (checkpoints/final.pt) in {items}")
+        raise RunNotFoundError(f"policy 'run': no finished training run (checkpoints/final.pt) in "
+                               f"{', '.join(map(str, items))}")
     return sorted(dict.fromkeys(r.resolve() for r in runs))
 
 

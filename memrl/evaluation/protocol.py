@@ -22,6 +22,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from memrl.errors import UserError
+from memrl.fields import SEED_MAX, spec
 
 INITIAL_LANES = ("random", "non_goal")
 """The initial-lane settings of Table III."""
@@ -36,15 +37,15 @@ episodes' seeds."""
 class ProtocolConfig:
     """What is evaluated: the scenes and the episode rules (not how fast it runs)."""
 
-    episodes: int = 100
+    episodes: int = spec(100, ge=1)
     """Episodes per initial-lane setting (the paper: 100)."""
-    seed: int = 0
+    seed: int = spec(0, ge=0, le=SEED_MAX)
     """Base of the scenario seeds: episode i is reset with ``scenario_seed(seed, i)``."""
     initial_lanes: list[str] = field(default_factory=lambda: list(INITIAL_LANES))
     """Initial-lane settings to evaluate: ``random`` (target or not, 50/50) and/or ``non_goal``."""
-    vehicles_count: list[int] = field(default_factory=lambda: [0, 5])
+    vehicles_count: list[int] = spec([0, 5], ge=0)
     """Other cars per episode, drawn uniformly in [low, high] (inclusive)."""
-    duration: int = 300
+    duration: int = spec(300, ge=1)
     """Action steps per episode [steps]; a survivor drives all of them."""
     opponent: Any = "constant"
     """Who drives the other cars: a type name, or the full ``env.opponent`` node (e.g. learned
@@ -57,8 +58,15 @@ class ProtocolError(UserError, ValueError):
 
 def check_protocol(cfg: ProtocolConfig | Mapping[str, Any] | DictConfig) -> ProtocolConfig:
     """A typed, checked :class:`ProtocolConfig` from a config node or mapping."""
+    from memrl.errors import ConfigError
+    from memrl.fields import check_fields
+
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
+    try:
+        check_fields(ProtocolConfig, asdict(cfg) if isinstance(cfg, ProtocolConfig) else cfg, "protocol.")
+    except ConfigError as err:
+        raise ProtocolError(str(err)) from None
     p = cfg if isinstance(cfg, ProtocolConfig) else ProtocolConfig(**dict(cfg))  # type: ignore[arg-type]
     opponent = dict(p.opponent) if isinstance(p.opponent, Mapping) else {"type": str(p.opponent)}
     if opponent.get("type") == "constant":

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from memrl.errors import UserError
 from memrl.evaluation.crash_counts import by_lane as crashes_by_lane
 from memrl.evaluation.protocol import (
     CSV_FIELDS,
@@ -84,7 +85,21 @@ def write_result(out_dir: Path, name: str, records: list[EpisodeRecord], protoco
 def read_result(path: Path) -> EvalResult:
     """An evaluation folder (or its ``eval.json``) back as an :class:`EvalResult`."""
     folder = path.parent if path.name == EVAL_JSON else path
-    doc = json.loads((folder / EVAL_JSON).read_text())
+    file = folder / EVAL_JSON
+    try:
+        doc = json.loads(file.read_text())
+        return _result_of(doc, folder)
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, AttributeError) as err:
+        why = f"no key {err}" if isinstance(err, KeyError) else str(err).splitlines()[0]
+        raise EvalFileError(f"{file}: not an evaluation memrl can read ({why}); evaluate it again "
+                            "(python -m memrl.evaluate) or remove the folder") from None
+
+
+class EvalFileError(UserError, ValueError):
+    """An ``eval.json`` that is garbled or lacks what an evaluation records."""
+
+
+def _result_of(doc: Any, folder: Path) -> EvalResult:
     return EvalResult(name=doc["name"], unit=doc["unit"],
                       scores={k: Score(**v) for k, v in doc["scores"].items()},
                       protocol=doc["protocol"], protocol_id=doc["protocol_id"], seeds=doc["seeds"],

@@ -16,7 +16,15 @@ from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_see
 from memrl.evaluation.results import EvalResult, write_result
 from memrl.evaluation.runner import Job, run_jobs
 from memrl.signals import Interrupted
-from memrl.stop import SIGINT_EXIT, SIGTERM_EXIT, SignalGuard, Stopped, Terminated, exit_status_of
+from memrl.stop import (
+    SIGINT_EXIT,
+    SIGTERM_EXIT,
+    SignalGuard,
+    Stopped,
+    Terminated,
+    exit_status_of,
+    output_overrides,
+)
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +106,11 @@ def resume_command(cand: Candidate, where: Path | str) -> str:
     kind, person = cand.meta.get("kind"), cand.meta.get("person")
     policy = {"human": "policy=human" + (f" policy.person={person}" if person else ""),
               "driver": f"policy={cand.name}", "checkpoint": f"policy.run={cand.meta.get('run')}"}
-    return f"python -m memrl.evaluate {policy.get(str(kind), '')} resume={where}".replace("  ", " ")
+    command = f"python -m memrl.evaluate {policy.get(str(kind), '')} resume={where}".replace("  ", " ")
+    import shlex
+
+    return " ".join([command, *map(shlex.quote, output_overrides())])
+
 
 
 def is_complete(result: EvalResult) -> bool:

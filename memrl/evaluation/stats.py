@@ -156,8 +156,11 @@ def check_protocols(results: Sequence[EvalResult]) -> str:
         ids.setdefault(r.protocol_id, []).append(str(r.path))
     if len(ids) > 1:
         detail = "; ".join(f"{k}: {v[:3]}{' ...' if len(v) > 3 else ''}" for k, v in ids.items())
-        raise ValueError("report: evaluations were made with different protocols (episodes, seeds, "
-                         f"cars, duration) and are not comparable: {detail}")
+        from memrl.errors import config_error
+
+        raise config_error("runs", "evaluations made under different protocols (episodes, seeds, "
+                           f"cars, duration) are not comparable: {detail}; report each protocol's "
+                           "folders apart (or evaluate them again under one protocol)")
     return next(iter(ids)) if ids else ""
 
 

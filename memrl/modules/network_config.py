@@ -39,13 +39,19 @@ def check_network(node: Any, key: str = "network") -> None:
     """Ranges of the ``network`` node, and a ``_target_`` that names a ``torch.nn.Module`` class."""
     check_fields(NetworkConfig, node, f"{key}.")
     target = str(node.get("_target_") or "")  # missing: refused below as an empty name
-    try:
-        from hydra.utils import get_class
+    import logging
 
+    from hydra.utils import get_class
+
+    quiet = logging.getLogger("hydra.utils")  # get_class logs a line of its own before raising
+    was, quiet.disabled = quiet.disabled, True
+    try:
         cls = get_class(target)
     except Exception as err:  # ImportError, AttributeError, Hydra's own: one line naming the key
         raise config_error(f"{key}._target_", f"cannot import {target!r} "
                            f"({str(err).splitlines()[0] if str(err) else type(err).__name__})") from None
+    finally:
+        quiet.disabled = was
     import torch
 
     if not issubclass(cls, torch.nn.Module):
