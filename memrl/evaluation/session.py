@@ -103,13 +103,27 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
 
 def resume_command(cand: Candidate, where: Path | str) -> str:
     """The command that goes on with a stopped evaluation in ``where``."""
-    kind, person = cand.meta.get("kind"), cand.meta.get("person")
-    policy = {"human": "policy=human" + (f" policy.person={person}" if person else ""),
-              "driver": f"policy={cand.name}", "checkpoint": f"policy.run={cand.meta.get('run')}"}
-    command = f"python -m memrl.evaluate {policy.get(str(kind), '')} resume={where}".replace("  ", " ")
     import shlex
 
+    kind, person = cand.meta.get("kind"), cand.meta.get("person")
+    policy = {"human": "policy=human" + (f" policy.person={person}" if person else ""),
+              "driver": f"policy={cand.name}", "checkpoint": f"policy.run={cand.meta.get('run')}",
+              "python": f"policy=python policy.target={cand.meta.get('target')}",
+              "sb3": f"policy=sb3 policy.path={cand.meta.get('path')}"}
+    if kind in ("python", "sb3") and (given := policy_overrides()):  # its kwargs and env as given
+        policy[str(kind)] = " ".join(map(shlex.quote, given))
+    command = f"python -m memrl.evaluate {policy.get(str(kind), '')} resume={where}".replace("  ", " ")
     return " ".join([command, *map(shlex.quote, output_overrides())])
+
+
+def policy_overrides() -> list[str]:
+    """This Hydra run's overrides of ``policy`` and its keys (none outside a Hydra run)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return []
+    return [str(o) for o in HydraConfig.get().overrides.task
+            if str(o).split("=", 1)[0].lstrip("+").split(".")[0] == "policy"]
 
 
 
