@@ -185,3 +185,25 @@ def flip_middle_byte(path: Path) -> None:
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF
     path.write_bytes(bytes(data))
+
+
+def inside_hydra_run(name: str, overrides: list[str], call):
+    """``call()`` as if inside a Hydra run of ``conf/<name>.yaml`` with ``overrides`` (its
+    ``HydraConfig`` set for the call, the previous one put back after)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+
+    from memrl.configs import register_configs
+    from tests.conftest import CONF_DIR
+
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name=name, overrides=overrides, return_hydra_config=True)
+    before = HydraConfig.instance().cfg
+    HydraConfig.instance().set_config(cfg)
+    try:
+        return call()
+    finally:
+        HydraConfig.instance().cfg = before

@@ -15,7 +15,7 @@ from memrl.evaluate import evaluate
 from memrl.evaluation.policies import run_config
 from memrl.modules.policy import GreedyPolicy
 from tests.eval_helpers import fake_run
-from tests.helpers import csv_rows
+from tests.helpers import csv_rows, inside_hydra_run
 
 SMALL = ["protocol.episodes=3", "protocol.duration=25", "workers=1", "batch=2", "progress=false"]
 
@@ -228,13 +228,7 @@ def test_the_go_on_command_of_a_stopped_evaluation_names_the_agent_as_given(tmp_
     target outside Hydra, the call's own ``policy`` overrides (kwargs, env) inside it."""
     import types
 
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
-
-    from memrl.configs import register_configs
     from memrl.evaluation.session import resume_command
-    from tests.conftest import CONF_DIR
 
     out = tmp_path / "ev"
     cand = types.SimpleNamespace(name="gym_agent", meta={"kind": "python", "target": "m:make"})
@@ -242,17 +236,7 @@ def test_the_go_on_command_of_a_stopped_evaluation_names_the_agent_as_given(tmp_
     assert resume_command(cand, out) == f"{command} policy=python policy.target=m:make resume={out}"
     sb3 = types.SimpleNamespace(name="SB3 DQN", meta={"kind": "sb3", "path": "/x/dqn.zip"})
     assert resume_command(sb3, out) == f"{command} policy=sb3 policy.path=/x/dqn.zip resume={out}"
-    register_configs()
-    GlobalHydra.instance().clear()
     given = ["policy=python", "policy.target=m:make", "+policy.kwargs.run=/r", "policy.env={frame_stack:4}"]
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=[*given, "protocol.episodes=3"],
-                      return_hydra_config=True)
-    before = HydraConfig.instance().cfg
-    HydraConfig.instance().set_config(cfg)
-    try:
-        line = resume_command(cand, out)
-    finally:
-        HydraConfig.instance().cfg = before
+    line = inside_hydra_run("evaluate", [*given, "protocol.episodes=3"], lambda: resume_command(cand, out))
     assert line == (f"{command} policy=python policy.target=m:make +policy.kwargs.run=/r "
                     f"'policy.env={{frame_stack:4}}' resume={out}")

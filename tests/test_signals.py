@@ -254,26 +254,12 @@ def test_the_go_on_command_of_a_stopped_evaluation_keeps_its_output_folder(tmp_p
     same folder, not in a new ``outputs/evaluate/runs/<time>``."""
     import types
 
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
-
-    from memrl.configs import register_configs
     from memrl.evaluation.session import resume_command
-    from tests.conftest import CONF_DIR
+    from tests.helpers import inside_hydra_run
 
-    register_configs()
     out = tmp_path / "my eval"
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=["policy=scripted", f"hydra.run.dir={out}"],
-                      return_hydra_config=True)
     cand = types.SimpleNamespace(name="scripted", meta={"kind": "driver"})
     assert resume_command(cand, out) == f"python -m memrl.evaluate policy=scripted resume={out}"
-    before = HydraConfig.instance().cfg
-    HydraConfig.instance().set_config(cfg)
-    try:
-        line = resume_command(cand, out)
-    finally:
-        HydraConfig.instance().cfg = before
+    line = inside_hydra_run("evaluate", ["policy=scripted", f"hydra.run.dir={out}"],
+                            lambda: resume_command(cand, out))
     assert line == f"python -m memrl.evaluate policy=scripted resume={out} 'hydra.run.dir={out}'"
