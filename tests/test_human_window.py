@@ -35,10 +35,16 @@ def test_a_lane_change_driven_with_real_keys_is_stored_as_the_assisted_actions(t
     out = tmp_path / "demos"
     env = {k: v for k, v in os.environ.items() if k != "SDL_VIDEODRIVER"}  # conftest's offscreen
     env.update(DISPLAY=display, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen(record_cmd(out), cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = tmp_path / "recorder.log"  # a file, not a pipe: unread output can never block the recorder
+    with open(log, "w") as sink:
+        proc = subprocess.Popen(record_cmd(out), cwd=ROOT, env=env, stdout=sink, stderr=subprocess.STDOUT)
     try:
-        win = XWindow(display, timeout=180)
+        try:
+            win = XWindow(display, timeout=180, proc=proc)
+        except (TimeoutError, RuntimeError) as e:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"{e}; the recorder printed:\n{log.read_text()[-4000:]}")
         x, y, w, h = win.geometry()
         assert w <= 1366 and h <= 768 - 40  # fits a 1366x768 screen with a title bar
         scene = None
@@ -52,9 +58,10 @@ def test_a_lane_change_driven_with_real_keys_is_stored_as_the_assisted_actions(t
             if s is not None and s.path_col is not None and \
                     (s.path_col - s.lanes[s.target]) * (1 if side == "right" else -1) > -0.2 * s.ppm:
                 break
-            assert proc.poll() is None, proc.communicate()[0]
+            assert proc.poll() is None, log.read_text()
         win.hold(set())
-        text = proc.communicate(timeout=120)[0]
+        proc.wait(timeout=120)
+        text = log.read_text()
     finally:
         proc.kill()
         xvfb.terminate()
@@ -94,3 +101,15 @@ def test_no_usable_display_is_refused_at_start_in_one_line(tmp_path, display):
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "xvfb-run" in lines[0], res.stderr
     assert "display" in lines[0].lower() and not (tmp_path / "demos").exists()
+
+
+@needs_x
+def test_waiting_for_the_window_stops_when_the_recorder_has_exited():
+    xvfb, display = start_xvfb()
+    try:
+        proc = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+        with pytest.raises(RuntimeError, match="exited with code 3 before its window"):
+            XWindow(display, timeout=60, proc=proc)
+    finally:
+        xvfb.terminate()
+        xvfb.wait()

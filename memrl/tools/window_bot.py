@@ -210,17 +210,21 @@ def main(argv: list[str]) -> int:
                f"demos.policy.fps={opts['fps']}", f"demos.policy.controls={opts['controls']}",
                "demos.person=window_bot", f"out={out}", "progress=false",
                f"hydra.run.dir={out.parent / 'hydra'}"]
-        proc = subprocess.Popen(cmd, env={**os.environ, "DISPLAY": display},
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        log = out.parent / "recorder.log"  # a file, not a pipe: unread output can never block the recorder
+        with open(log, "w") as sink:
+            proc = subprocess.Popen(cmd, env={**os.environ, "DISPLAY": display},
+                                    stdout=sink, stderr=subprocess.STDOUT)
         try:
-            win = XWindow(display, timeout=180)
-        except TimeoutError:
+            win = XWindow(display, timeout=180, proc=proc)
+        except (TimeoutError, RuntimeError):
             proc.kill()
-            print(proc.communicate()[0][-3000:], file=sys.stderr)
+            proc.wait()
+            print(log.read_text()[-3000:], file=sys.stderr)
             raise
         trace = open(opts["trace"], "w") if opts["trace"] else None  # noqa: SIM115
         drive(win, proc, look=float(opts["look"]), trace=trace, fps=float(opts["fps"]))
-        text = proc.communicate()[0]
+        proc.wait()
+        text = log.read_text()
         print("\n".join(text.strip().splitlines()[-3:]))  # the recorder's summary
         print(f"window_bot: fps={opts['fps']} controls={opts['controls']} dataset={out}")
         return proc.returncode or 0

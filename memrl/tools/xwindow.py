@@ -26,7 +26,9 @@ def have_tools() -> bool:
 class XWindow:
     """The recorder's window on ``display`` (``:N``), found by its class ``memrl``."""
 
-    def __init__(self, display: str, timeout: float = 120.0, poll: float = 0.2) -> None:
+    def __init__(self, display: str, timeout: float = 120.0, poll: float = 0.2,
+                 proc: subprocess.Popen | None = None) -> None:
+        """Wait for the window; with ``proc`` (the recorder), stop as soon as it has exited."""
         self.display = display
         self.env = {**os.environ, "DISPLAY": display}
         deadline = time.time() + timeout
@@ -35,8 +37,12 @@ class XWindow:
             if found:
                 self.wid = found[0]
                 break
+            if proc is not None and proc.poll() is not None:
+                raise RuntimeError(f"the recorder exited with code {proc.returncode} before its window "
+                                   f"of class {WINDOW_CLASS} appeared on {display}")
             if time.time() > deadline:
-                raise TimeoutError(f"no window of class {WINDOW_CLASS} on {display} in {timeout:.0f} s")
+                raise TimeoutError(f"no window of class {WINDOW_CLASS} on {display} in {timeout:.0f} s "
+                                   f"(X server answers: {self.server_answers()})")
             time.sleep(poll)
         self.held: set[str] = set()
         self._xdotool("windowfocus", "--sync", self.wid, check=False)
@@ -46,6 +52,11 @@ class XWindow:
         if check and res.returncode:
             raise RuntimeError(f"xdotool {' '.join(args)}: {res.stderr.strip()}")
         return res.stdout
+
+    def server_answers(self) -> bool:
+        """Whether the X server at this display answers a query (``xdotool getdisplaygeometry``)."""
+        res = subprocess.run(["xdotool", "getdisplaygeometry"], env=self.env, capture_output=True)
+        return res.returncode == 0
 
     def alive(self) -> bool:
         return bool(self._xdotool("search", "--classname", WINDOW_CLASS, check=False).split())
