@@ -128,7 +128,7 @@ def test_signal_during_a_study_keeps_its_runs_and_the_printed_command_finishes_i
     train = ["+experiment=smoke", "total_frames=900", "agent.warmup_frames=16", "buffer.capacity=400",
              "env.duration=30", "logger=none", "checkpoint_every=2", "eval.every=0"]
     folder = tmp_path / "s"
-    args = [*study_overrides(folder, train, modes="[Default]", report=("rollouts.rows=[]",)),
+    args = [*study_overrides(folder, train, modes="[Default]", report=("rollouts.rows=[]",), seeds="[0]"),
             "study.baselines=[]", "study.jobs=1"]
     proc = start(["memrl.study", *args], tmp_path)
     run = folder / "runs" / "Default_constant_s0"
