@@ -139,6 +139,9 @@ def check_train(cfg: DictConfig) -> None:
     check_env(cfg.env)  # before the relations of check_train_config read env keys
     check_train_config(cfg)
     check_network(cfg.network)
+    from memrl.dqn.losses import td_term
+
+    td_term(cfg.agent, cfg.network)  # the head's TD term takes this agent config (refusals name the key)
     if cfg.self_play_every and cfg.env.opponent.type == "constant":
         raise config_error("self_play_every", "snapshots join the learned cars' pool; it needs "
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
@@ -173,9 +176,10 @@ def check_train(cfg: DictConfig) -> None:
     if init is not None:
         from memrl.checkpoint import stage1_source
         from memrl.dqn.checkpoint import CheckpointError
+        from memrl.modules.qnet import network_for_task
 
         try:
-            stage1_source(str(init), cfg.env, cfg.network)
+            stage1_source(str(init), cfg.env, network_for_task(cfg.network, cfg.env, float(cfg.agent.gamma)))
         except CheckpointError as e:
             raise config_error(f"mode.{offline[0]}.init", str(e)) from None
 

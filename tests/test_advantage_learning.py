@@ -43,15 +43,19 @@ def test_the_target_is_lowered_by_alpha_times_the_target_networks_action_gap():
     learner = moved_learner()
     td = batch(seed=2)
     reward = td["next", "reward"].clone()
+    q = learner.q_functions(td)
     with torch.no_grad():
-        got = TDTerm(advantage=0.9)(td, learner.loss_module, learner.qnet)
+        got = TDTerm(advantage=0.9)(td, q)
     expected = hand_loss(learner, td, 0.9)
     plain = hand_loss(learner, td, 0.0)
     assert not torch.allclose(expected, plain)  # the correction matters on this batch
     # float32 sums of 9 values, one forward each way: a few ulps of Q values around 0.1
     assert torch.allclose(got, expected, rtol=1e-5, atol=1e-6), (got, expected)
     assert torch.equal(td["next", "reward"], reward)  # the batch keeps its reward
-    assert TD_KEY in td.keys() and td[TD_KEY].shape == (6, 1)  # the AL TD errors, for priorities
+    # the AL TD errors, for priorities: their half mean is the term
+    assert q.td_error.shape == (6, 1) and torch.allclose(0.5 * q.td_error.mean(), got, rtol=1e-6)
+    learner.loss(td)  # the learner puts them where prioritized replay reads them
+    assert TD_KEY in td.keys() and td[TD_KEY].shape == (6, 1)
 
 
 def test_the_greedy_actions_target_is_eq_1s():
@@ -60,19 +64,19 @@ def test_the_greedy_actions_target_is_eq_1s():
     with torch.no_grad(), learner.loss_module.target_value_network_params.to_module(
             learner.loss_module.value_network):
         td["action"] = learner.qnet(td["pixels"]).argmax(-1)
-    assert torch.equal(target_action_gap(td, learner.loss_module), torch.zeros(6))
+    assert torch.equal(target_action_gap(td, learner.q_functions(td)), torch.zeros(6))
     with torch.no_grad():
-        assert torch.equal(TDTerm(advantage=0.9)(td, learner.loss_module, learner.qnet),
-                           TDTerm()(td, learner.loss_module, learner.qnet))
+        assert torch.equal(TDTerm(advantage=0.9)(td, learner.q_functions(td)),
+                           TDTerm()(td, learner.q_functions(td)))
 
 
 def test_the_gap_is_nonnegative_and_zero_alpha_is_eq_1():
     learner = moved_learner()
     td = batch(seed=3)
-    gap = target_action_gap(td, learner.loss_module)
+    gap = target_action_gap(td, learner.q_functions(td))
     assert gap.shape == (6,) and bool((gap >= 0).all()) and bool((gap > 0).any())
     with torch.no_grad():
-        got = TDTerm(advantage=0.0)(td, learner.loss_module, learner.qnet)
+        got = TDTerm(advantage=0.0)(td, learner.q_functions(td))
     assert torch.allclose(got, hand_loss(learner, td, 0.0), rtol=1e-5, atol=1e-6)
 
 

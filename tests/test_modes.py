@@ -234,7 +234,7 @@ def test_a_demo_only_batch_costs_one_online_forward_and_keeps_the_margin_gradien
     learner.qnet.zero_grad(set_to_none=True)
     # the two-forward formula: eq. (1) and the margin loss on its own forward of the demo rows
     separate = 0.5 * learner.loss_module(batch)["loss"] + MarginTerm(3.0, 0.8)(
-        batch, learner.loss_module, learner.qnet)
+        batch, learner.q_functions(batch))
     assert float(separate) == float(loss)
     separate.backward()
     for name, p in learner.qnet.named_parameters():

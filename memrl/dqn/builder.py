@@ -74,7 +74,7 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
     nstep = {"n_step": int(a.n_step if n_step is None else n_step), "gamma": float(a.gamma)}
     if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
         nstep["stride"] = int(cfg.env.frame_stride)
-    terms = (td_term(a), *spec.terms(cfg))
+    terms = (td_term(a, cfg.network), *spec.terms(cfg))  # the value head's own TD term first
     lr = spec.lr(cfg)
     lr = None if lr is None else float(lr)
     share = float(spec.demo_share(cfg))

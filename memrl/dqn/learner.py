@@ -1,4 +1,5 @@
-"""The double-DQN learner: TorchRL ``DQNLoss`` with eq. (1)'s 1/2, Adam, hard target updates."""
+"""The double-DQN learner: online and target networks (kept by TorchRL's ``DQNLoss``), Adam,
+hard target updates; its loss is the sum of the stage's terms on a :class:`QFunctions` view."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from memrl.data.priority_sampler import TD_KEY
 from memrl.dqn.augment import shift_batch
 from memrl.dqn.config import AgentConfig
 from memrl.dqn.losses import LossTerm, td_term
+from memrl.dqn.values import QFunctions
 from memrl.modules.qnet import QNetwork, make_q_actor
 
 
@@ -70,7 +72,8 @@ class Learner:
     Args:
         cfg: the ``agent`` config.
         device: where the networks and the optimizer live.
-        terms: the loss terms of the first stage (None: eq. (1)'s, as ``cfg`` sets it).
+        terms: the loss terms of the first stage (None: the network's own TD term, as ``cfg``
+            sets it: eq. (1)'s for Table I).
         seed: seed of the learner's own generator (image shifts), so that shifts do not depend
             on what the acting thread draws meanwhile.
         network: the Q-network, as a ``network`` config node or stored architecture (built
@@ -81,12 +84,12 @@ class Learner:
                  terms: tuple[LossTerm, ...] | None = None, seed: int = 0,
                  network: Mapping[str, Any] | torch.nn.Module | None = None) -> None:
         self.cfg, self.device = cfg, torch.device(device)
-        self.terms = tuple(terms) if terms is not None else (td_term(cfg),)
         self.augment_shift = int(cfg.augment_shift)
         self.shift_generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.actor: QValueActor = make_q_actor(pool_first=bool(cfg.pool_first), network=network)
         self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
+        self.terms = tuple(terms) if terms is not None else (td_term(cfg, self.qnet),)
         precision = str(cfg.precision)
         # bf16 autocast is a CPU speed-up (oneDNN); on CUDA `auto` keeps float32
         self.qnet.conv_dtype = conv_dtype(precision) if self.device.type == "cpu" or \
@@ -109,35 +112,26 @@ class Learner:
 
     def loss(self, batch: TensorDictBase) -> torch.Tensor:
         """The stage's loss on a batch (differentiable): the sum of its terms, in their order,
-        on the batch shifted by ``augment_shift`` pixels (when > 0)."""
+        on the batch shifted by ``augment_shift`` pixels (when > 0). The TD term's squared TD
+        errors go into ``batch`` under ``TD_KEY`` (prioritized replay's priorities)."""
         given = batch
         if self.augment_shift > 0:
             batch = shift_batch(batch, self.augment_shift, self.shift_generator)
-        pixels, seen = batch["pixels"], {}
-
-        def online_q(module: torch.nn.Module, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-            """Keep the online Q-values of ``pixels`` that DQNLoss computes with gradients."""
-            if inputs and inputs[0] is pixels and torch.is_grad_enabled() and output.requires_grad:
-                seen.setdefault("q", output)
-
-        # A hook on this call only, and only when a later term can use it: TorchRL's DQNLoss does
-        # not return its Q(s, .), and a hook kept on the module would be copied with it (the
-        # acting copy of overlap mode).
-        handle = self.qnet.register_forward_hook(online_q) if len(self.terms) > 1 else None
+        q = self.q_functions(batch)
         total: torch.Tensor | None = None
-        try:
-            for term in self.terms:
-                value = term(batch, self.loss_module, self.qnet, seen.get("q"))
-                if value is not None:
-                    total = value if total is None else total + value
-        finally:
-            if handle is not None:
-                handle.remove()
+        for term in self.terms:
+            value = term(batch, q)
+            if value is not None:
+                total = value if total is None else total + value
         if total is None:
             raise ValueError(f"no loss term applies to this batch (terms: {[t.name for t in self.terms]})")
-        if batch is not given and TD_KEY in batch.keys():  # the TD errors, for prioritized replay
-            given.set(TD_KEY, batch.get(TD_KEY))
+        if q.td_error is not None:
+            given.set(TD_KEY, q.td_error)
         return total
+
+    def q_functions(self, batch: TensorDictBase) -> QFunctions:
+        """What the terms see of the online and target networks on ``batch``."""
+        return QFunctions(self.loss_module, self.qnet, batch, keep_batch_q=len(self.terms) > 1)
 
     def start_stage(self, terms: tuple[LossTerm, ...], lr: float | None = None,
                     fresh_optimizer: bool = False) -> None:

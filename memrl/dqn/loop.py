@@ -45,7 +45,7 @@ from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
 from memrl.modes import mode_of
-from memrl.modules.qnet import arch_of
+from memrl.modules.qnet import arch_of, network_for_task
 from memrl.progress import drawn, progress_bar
 from memrl.weights import load_weights, save_weights
 
@@ -113,7 +113,8 @@ class Trainer:
         self.device = resolve_device(cfg.device)
         self.num_envs = int(cfg.env.num_envs)
         self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed))
-        self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=cfg.network)
+        network = network_for_task(cfg.network, cfg.env, float(cfg.agent.gamma))  # e.g. a support's bounds
+        self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=network)
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),
                                   int(cfg.agent.threads))
         self.schedule = UpdateSchedule(int(cfg.agent.train_every), int(cfg.agent.warmup_frames))

@@ -5,6 +5,7 @@ Imports no torch (``--help`` stays fast); :func:`check_network` imports the ``_t
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,9 +22,11 @@ class NetworkConfig:
 
     _target_: str = MISSING
     """The network class, named by each ``conf/network/<name>.yaml``: ``memrl.modules.qnet.QNetwork``
-    (Table I, ``network=table1``), ``memrl.modules.qnet.DuelingQNetwork`` (``network=dueling``);
-    any ``torch.nn.Module`` taking ``channels, hidden, layernorm, layernorm_convs, pool_first``
-    keywords (docs/network.md)."""
+    (Table I, ``network=table1``), ``memrl.modules.qnet.DuelingQNetwork`` (``network=dueling``),
+    ``memrl.modules.categorical.CategoricalQNetwork`` (``network=c51``),
+    ``memrl.modules.hlgauss.HLGaussQNetwork`` (``network=hlgauss``); any ``torch.nn.Module``
+    taking ``channels, hidden, layernorm, layernorm_convs, pool_first`` keywords, whose keys
+    of its own are those of the schema it names as ``config_schema`` (docs/network.md)."""
     channels: int = spec(16, ge=1)
     """Filters of each of the three 3x3 convs (Table I: 16)."""
     hidden: int = spec(256, ge=1)
@@ -36,8 +39,10 @@ class NetworkConfig:
 
 
 def check_network(node: Any, key: str = "network") -> None:
-    """Ranges of the ``network`` node, and a ``_target_`` that names a ``torch.nn.Module`` class."""
-    check_fields(NetworkConfig, node, f"{key}.")
+    """The ``network`` node against the schema of the class its ``_target_`` names (the
+    class's ``config_schema``, :class:`NetworkConfig` where it names none): a ``_target_`` that
+    is a ``torch.nn.Module`` class, each key known and of its type, each range, then the
+    schema's own cross-key ``check``."""
     target = str(node.get("_target_") or "")  # missing: refused below as an empty name
     import logging
 
@@ -56,3 +61,33 @@ def check_network(node: Any, key: str = "network") -> None:
 
     if not issubclass(cls, torch.nn.Module):
         raise config_error(f"{key}._target_", f"{target} is not a torch.nn.Module class")
+    schema = network_schema(cls)
+    check_typed(schema, node, key)
+    check_fields(schema, node, f"{key}.")
+    rule = getattr(schema, "check", None)
+    if rule is not None:
+        rule(node, f"{key}.")
+
+
+def network_schema(cls: type) -> type:
+    """The schema of a network class: its ``config_schema``, else :class:`NetworkConfig`."""
+    schema = getattr(cls, "config_schema", NetworkConfig)
+    return schema if dataclasses.is_dataclass(schema) else NetworkConfig
+
+
+def check_typed(schema: type, node: Any, key: str) -> None:
+    """Every key of ``node`` is a field of ``schema`` and of its type (OmegaConf's structured
+    merge), else one line naming the key."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    plain = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
+    try:
+        OmegaConf.merge(OmegaConf.structured(schema), plain)
+    except OmegaConfBaseException as err:
+        name = str(getattr(err, "full_key", "") or getattr(err, "key", "") or "")
+        what = str(err).splitlines()[0]
+        known = ", ".join(f.name for f in dataclasses.fields(schema) if f.name != "_target_")
+        if "not in" in what or "not found" in what.lower():
+            raise config_error(f"{key}.{name}", f"{schema.__name__} has no such key (keys: {known})") from None
+        raise config_error(f"{key}.{name}", what) from None

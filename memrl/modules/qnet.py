@@ -9,14 +9,17 @@ which every weights file stores next to the weights (``memrl.checkpoint``).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import torch
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import Categorical
 from torchrl.modules import QValueActor
 
 from memrl.envs.vehicles import N_ACTIONS
+from memrl.modules.network_config import NetworkConfig
 
 TABLE1_TARGET = "memrl.modules.qnet.QNetwork"
 """``_target_`` of the paper's Table I network (``conf/network/table1.yaml``)."""
@@ -83,8 +86,13 @@ class QNetwork(nn.Module):
     """Lower precision for the conv trunk (``torch.bfloat16``: autocast, weights stay float32;
     the FC head and the Q-values stay float32); None: float32 throughout."""
 
-    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
-        batch = pixels.shape[:-3]
+    config_schema: ClassVar[type] = NetworkConfig
+    """Its ``network`` node's keys, ranges and cross-key check (:func:`check_network`): a
+    subclass with keys of its own names its own schema here."""
+
+    def trunk(self, pixels: torch.Tensor) -> torch.Tensor:
+        """The head's output ``[B', ...]`` of uint8 ``pixels [..., frames, H, W]``, with the
+        leading dims flattened into ``B'``."""
         x = pixels.reshape(-1, *pixels.shape[-3:]).to(torch.float32).div_(255.0)
         if self.conv_dtype is None:
             features = self.features(x)
@@ -92,7 +100,57 @@ class QNetwork(nn.Module):
             with torch.autocast(x.device.type, dtype=self.conv_dtype):
                 features = self.features(x)
             features = features.float()
-        return self.head(features).reshape(*batch, -1)
+        return self.head(features)
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Q-values ``[..., n_actions]`` (what acting, evaluation and deployment use)."""
+        return self.trunk(pixels).reshape(*pixels.shape[:-3], -1)
+
+    def outputs(self, pixels: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Its declared outputs: ``{"q": Q-values}`` (a distributional head adds its own)."""
+        return {"q": self(pixels)}
+
+    @classmethod
+    def td_term(cls, agent: Any) -> TDTerm:
+        """The TD term that trains this head: eq. (1) (``agent.advantage_learning`` sets alpha)."""
+        return TDTerm(advantage=float(agent.advantage_learning))
+
+
+@dataclass(frozen=True)
+class TDTerm:
+    """Eq. (1): the mean of 1/2 (r + gamma^m Q_target(s', argmax_a Q(s', a)) - Q(s, a))^2, no
+    bootstrap on terminated transitions (TorchRL's double ``DQNLoss``; its ``l2`` distance has
+    no 1/2; ``m`` is the batch's ``steps_to_next_obs`` where n-step returns give one, else 1).
+
+    With ``advantage`` = alpha > 0 the target is advantage learning's (Bellemare et al., 2016):
+    less alpha (max_b Q_target(s, b) - Q_target(s, a)), which leaves the greedy action's value
+    as it is and multiplies the action gap by 1 / (1 - alpha)."""
+
+    weight: float = 1.0
+    advantage: float = 0.0
+    """Advantage learning's alpha in [0, 1) (``agent.advantage_learning``); 0: eq. (1)."""
+    name: str = "td"
+
+    def __call__(self, batch: TensorDictBase, q: Any) -> torch.Tensor:
+        """The term on ``batch``; ``q``: the learner's :class:`memrl.dqn.values.QFunctions`."""
+        if self.advantage == 0:
+            return self.weight * 0.5 * q.double_dqn_loss()
+        # DQNLoss has no advantage-learning target: its reward is lowered by the correction
+        # instead (the target is reward + bootstrap), on a copy that leaves the batch as it is.
+        lowered = batch.clone(False)
+        lowered.set("next", batch.get("next").clone(False))
+        reward = batch.get(("next", "reward"))
+        gap = self.advantage * target_action_gap(batch, q)
+        lowered.set(("next", "reward"), reward - gap.reshape(reward.shape).to(reward.dtype))
+        return self.weight * 0.5 * q.double_dqn_loss(lowered)
+
+
+def target_action_gap(batch: TensorDictBase, q: Any) -> torch.Tensor:
+    """``max_b Q_target(s, b) - Q_target(s, a)`` per item ``[B]`` (>= 0; 0 for the greedy action),
+    the target network's Q of the batch's own ``pixels`` and ``action`` (``q``: QFunctions)."""
+    a = batch.get("action").reshape(-1, 1).long()
+    values = q.target(batch.get("pixels"))["q"].reshape(a.shape[0], -1)
+    return values.max(-1).values - values.gather(-1, a).squeeze(-1)
 
 
 def hidden_layer(features: int, hidden: int, layernorm: bool) -> list[nn.Module]:
@@ -151,6 +209,27 @@ def build_qnet(arch: Mapping[str, Any] | None = None, **runtime: Any) -> nn.Modu
     arch_args = {k: v for k, v in node.items() if k not in RUNTIME_ARGS}
     net.arch = {**getattr(net, "arch", {}), **arch_args}  # type: ignore[assignment]
     return net
+
+
+def network_class(network: Any) -> type:
+    """The class of a ``network`` node or stored architecture (its ``_target_``), a class, or a
+    built network; None: Table I."""
+    if network is None:
+        return QNetwork
+    if isinstance(network, type):
+        return network
+    if isinstance(network, nn.Module):
+        return type(network)
+    from hydra.utils import get_class
+
+    return get_class(str(network["_target_"]))
+
+
+def network_for_task(network: Any, env: Any, gamma: float) -> Any:
+    """``network`` (a ``network`` node) with what its class takes from the task filled in (a
+    categorical head's null support bounds: ``for_task``); unchanged for other classes."""
+    fill = getattr(network_class(network), "for_task", None)
+    return network if fill is None else fill(plain_arch(network), env, gamma)
 
 
 def arch_of(net: nn.Module) -> dict[str, Any]:
