@@ -31,7 +31,8 @@ def register_configs() -> None:
     cs.store(group="network", name="network_schema", node=NetworkConfig)
     # the same keys and defaults untyped, for a network with keys of its own (conf/network/c51.yaml):
     # its class's schema types and checks them (check_network)
-    cs.store(group="network", name="network_keys", node=OmegaConf.to_container(OmegaConf.structured(NetworkConfig)))
+    untyped = OmegaConf.to_container(OmegaConf.structured(NetworkConfig))
+    cs.store(group="network", name="network_keys", node=untyped)
     cs.store(group="protocol", name="protocol_schema", node=ProtocolConfig)
     cs.store(group="eval_schema", name="base", node=PeriodicEvalConfig, package="eval")
     # Each mode's own typed `mode` node (memrl/modes.py): conf/train.yaml picks `default`,

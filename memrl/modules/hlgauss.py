@@ -57,7 +57,8 @@ def gauss_histogram(targets: torch.Tensor, v_min: float, v_max: float, bins: int
                     sigma: float) -> torch.Tensor:
     """``[B, bins]``: the mass a Gaussian of standard deviation ``sigma`` [return units] centred
     on each target (clipped into ``[v_min, v_max]``) puts in each bin, renormalised to the
-    range's mass: ``(Phi((e_{i+1} - y) / sigma) - Phi((e_i - y) / sigma)) / (Phi((e_K - y) / sigma) - Phi((e_0 - y) / sigma))``."""
+    range's mass: bin i gets ``Phi((e_{i+1} - y) / sigma) - Phi((e_i - y) / sigma)``, divided
+    by ``Phi((e_K - y) / sigma) - Phi((e_0 - y) / sigma)`` (``e``: the bins' edges)."""
     edges = torch.linspace(v_min, v_max, bins + 1, device=targets.device, dtype=torch.float32)
     y = targets.to(torch.float32).clamp(v_min, v_max)[:, None]
     cdf = 0.5 * (1.0 + torch.erf((edges[None, :] - y) / (sigma * math.sqrt(2.0))))

@@ -89,5 +89,6 @@ def check_typed(schema: type, node: Any, key: str) -> None:
         what = str(err).splitlines()[0]
         known = ", ".join(f.name for f in dataclasses.fields(schema) if f.name != "_target_")
         if "not in" in what or "not found" in what.lower():
-            raise config_error(f"{key}.{name}", f"{schema.__name__} has no such key (keys: {known})") from None
+            raise config_error(f"{key}.{name}", f"{schema.__name__} has no such key (keys: {known})") \
+                from None
         raise config_error(f"{key}.{name}", what) from None
