@@ -6,7 +6,8 @@ every command (``memrl.schemas.SCHEMAS``) is composed from ``conf/<command>.yaml
 overrides; its type, range and docstring come from the dataclass field that types it (the
 docstring under the field, read with ``ast``; the range from :func:`memrl.fields.spec`). The
 few untyped keys (the ``paths``, ``logger``, ``policy`` and ``demos`` groups, free-form dicts)
-take the comment of their YAML line instead. Imports no torch.
+take the comment of their YAML line instead. Imports torch only for the sections of the
+networks, whose keys are typed by their class's schema (``config_schema``).
 """
 
 from __future__ import annotations
@@ -213,7 +214,33 @@ def markdown() -> str:
         parts += _table(command_rows(command), seen_docs)
         if command == "train":
             parts += _mode_sections(seen_docs)
+            parts += _network_sections(seen_docs)
     return "\n".join(parts)
+
+
+def _network_sections(seen_docs: dict[str, str]) -> list[str]:
+    """One table per ``conf/network/<name>.yaml`` (``network=<name>``): its keys, typed and
+    documented by the schema of the class it names (imports that class, so torch)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from memrl.modules.network_config import network_schema
+    from memrl.modules.qnet import network_class
+
+    parts = []
+    for path in sorted((CONF_DIR / "network").glob("*.yaml")):
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="train", overrides=[f"network={path.stem}"], return_hydra_config=False)
+        GlobalHydra.instance().clear()
+        schema = network_schema(network_class(cfg.network))
+        typed = OmegaConf.merge(OmegaConf.structured(schema), cfg.network)
+        parts.append(f"### train network={path.stem}\n\nThe `network` node of `conf/network/{path.name}`: "
+                     f"`{cfg.network._target_}`, its keys from `{schema.__name__}`.\n")
+        rows: list[tuple[str, ...]] = []
+        _rows("train", typed, "network.", rows)
+        parts += _table(rows, seen_docs)
+    return parts
 
 
 def _mode_sections(seen_docs: dict[str, str]) -> list[str]:
