@@ -46,10 +46,15 @@ LEARNING_OPTIONS: dict[str, dict[str, Any]] = {
     "layernorm": {"network": {"layernorm": True}},
     "layernorm_convs": {"network": {"layernorm": True, "layernorm_convs": True}},
     "stage1_margin": {"stage1": True},
+    "c51": {"network": {"_target_": "memrl.modules.categorical.CategoricalQNetwork", "atoms": 51,
+                        "v_min": None, "v_max": None}},
+    "hlgauss": {"network": {"_target_": "memrl.modules.hlgauss.HLGaussQNetwork", "atoms": 51,
+                            "v_min": None, "v_max": None, "sigma": 0.75}},
 }
 """Learning options timed beside the default (``learning=true``): name -> ``agent`` values,
 ``network`` values (over Table I's), or ``stage1``: mode B's stage-1 update (every row a demo,
-DQfD's margin term at ``mode.stage1``'s default weight and margin)."""
+DQfD's margin term at ``mode.stage1``'s default weight and margin). The value heads (``c51``,
+``hlgauss``) take their support from the default task's return bounds, as training does."""
 
 
 def default_agent_cfg() -> DictConfig:
@@ -134,8 +139,13 @@ def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any
 
     torch.manual_seed(seed)
     s1 = Stage1Config()  # the margin term of mode B's stage 1 at its defaults
-    terms = (td_term(agent), MarginTerm(s1.margin_weight, s1.margin)) if stage1 else None
-    learner = Learner(agent, terms=terms, network={**TABLE1, **(network or {})})
+    terms = (td_term(agent), MarginTerm(s1.margin_weight, s1.margin)) if stage1 else None  # Table I's
+    from memrl.envs.config import LaneChangeConfig
+    from memrl.modules.qnet import network_for_task
+
+    arch = network_for_task({**TABLE1, **(network or {})}, OmegaConf.structured(LaneChangeConfig),
+                            float(agent.gamma))
+    learner = Learner(agent, terms=terms, network=arch)
     batch_size = int(agent.batch_size)
 
     def step() -> float:
