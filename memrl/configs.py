@@ -39,6 +39,8 @@ def register_configs() -> None:
     # conf/mode/<name>.yaml (`+mode=<name>`) overrides the choice with its own.
     for spec in MODES.values():
         cs.store(group="mode_schema", name=spec.name, node=spec.schema, package="mode")
+        for preset, values in spec.presets.items():  # conf/train.yaml's optional mode_preset
+            cs.store(group="mode_preset", name=f"{spec.name}_{preset}", node=values, package="mode")
 
 
 def main(argv: list[str] | None = None) -> int:

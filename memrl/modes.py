@@ -79,6 +79,10 @@ class ModeSpec:
     """Range checks of its keys (raise :func:`memrl.errors.config_error` naming the key)."""
     overrides: tuple[str, ...] = field(default=())
     """Command-line overrides that select it (``+mode=A``); filled in by :func:`register_mode`."""
+    presets: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Its values under each preset (``+experiment=<preset>``): preset name -> ``mode`` values,
+    registered as ``mode_preset/<name>_<preset>`` (:func:`memrl.configs.register_configs`), so
+    a mode needs no preset file of its own (``conf/mode_preset/`` holds A's and B's)."""
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -222,7 +226,8 @@ def explain_key_error(err: BaseException) -> str | None:
     now = [s.name for s in MODES.values() if otype is not None and _schema_at(s.schema, where) is otype]
     which = f"mode {now[0]}" if len(now) == 1 else "the selected mode"
     how = " or ".join(o.overrides[0] if o.overrides else "no +mode" for o in owners)
-    whose = " and ".join(o.name for o in owners)
+    names = [o.name for o in owners]
+    whose = names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
     return f"config '{key}': {which} has no such key (mode {whose}'s key: add {how})"
 
 
@@ -455,6 +460,27 @@ class ModeBConfig(DemoKeys):
     stage2: Stage2Config = field(default_factory=Stage2Config)
 
 
+@dataclass
+class ModeRConfig(DemoKeys):
+    """Mode R's ``mode`` node (``+mode=R``): RLPD's symmetric sampling (Ball et al., 2023)."""
+
+    name: str = "R"
+    """default | A | B | R (``+mode=<name>``)."""
+    demo_fraction: float = spec(0.5, gt=0, lt=1)
+    """Share of every batch (and of the buffer) that the prior knowledge holds, from the first
+    update on (RLPD: half)."""
+    sampling: str = spec("stratified", choices=("stratified", "proportional"))
+    """Stratified (exactly round(demo_fraction x batch) demos per batch, RLPD's symmetric
+    sampling) or proportional (binomial count)."""
+    margin_weight: float = spec(0.0, ge=0)
+    """Weight of DQfD's large-margin loss on each batch's demos (0: none, RLPD's own)."""
+    margin: float = spec(0.8, ge=0)
+    """Margin of that loss [Q units]."""
+
+
+SMOKE_DEMOS = {"example": {"episodes": 12}}
+"""The smoke preset's prior knowledge: the default recipe, 12 episodes (about 1,000 transitions)."""
+
 register_mode(ModeSpec("default", "Default", (StageSpec("default"),), schema=DefaultModeConfig))
 """Default: plain double DQN (eq. (1)), the agent's own data only."""
 
@@ -482,3 +508,12 @@ register_mode(ModeSpec(
 (``B2``) starts from its weights with a fresh Adam and trains as Default, keeping
 ``stage2.demo_fraction`` of the buffer for the prior knowledge with the margin loss on it
 (0 / 0: the paper's B)."""
+
+register_mode(ModeSpec(
+    "R", "R",
+    (StageSpec("R", demo_share=lambda cfg: cfg.mode.demo_fraction,
+               terms=lambda cfg: _margin(cfg.mode.margin_weight, cfg.mode.margin)),),
+    schema=ModeRConfig, presets={"smoke": SMOKE_DEMOS}))
+"""Mode R: RLPD's symmetric sampling, prior knowledge at half of every batch from the first
+update, no offline stage; the margin term optional (``margin_weight``, off). The worked example
+of a mode in ``docs/extending.md``: this declaration and ``conf/mode/R.yaml``."""

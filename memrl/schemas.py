@@ -605,7 +605,24 @@ def check_preview(cfg: DictConfig) -> None:
 # ---------------------------------------------------------------------------------------------
 # study
 
-STUDY_MODES = ("Default", "A", "B")  # the labels of the modes of memrl.modes (tested equal)
+class ModeLabels:
+    """The Table III labels of every declared mode (:data:`memrl.modes.MODES`), read each time
+    they are checked: a mode registered after this module was imported (a test's toy mode, a
+    user's module) is a valid ``study.modes`` value too."""
+
+    def __iter__(self) -> Any:
+        from memrl.modes import MODES
+
+        return iter([m.label for m in MODES.values()])
+
+    def __contains__(self, label: object) -> bool:
+        return label in list(self)
+
+    def __repr__(self) -> str:
+        return repr(tuple(self))
+
+
+STUDY_MODES = ModeLabels()
 OPPONENTS = ("constant", "learned", "mixed")
 BASELINES = ("scripted", "random")
 GRID_KEYS = ("seed", "mode", "resume", "variant")

@@ -84,7 +84,8 @@ def test_the_toy_mode_needs_prior_knowledge_and_names_its_row(toy_mode):
 
 
 def test_the_paper_modes_are_declared_once():
-    assert [m.label for m in MODES.values()][:3] == list(STUDY_MODES)
+    assert [m.label for m in MODES.values()][:4] == ["Default", "A", "B", "R"]
+    assert list(STUDY_MODES) == [m.label for m in MODES.values()]  # the study takes every mode
     assert [s.name for s in MODES["B"].stages] == ["B1", "B2"]
     assert MODES["B"].pretrains and not MODES["A"].pretrains and not MODES["default"].needs_demos
     assert MODES["B"].next_stage("B1") is MODES["B"].stages[1]
@@ -276,14 +277,16 @@ def test_the_mode_node_holds_only_the_selected_modes_keys_in_either_order(compos
     (["mode.stage1.lr=1e-3"],
      "config 'mode.stage1.lr': mode default has no such key (mode B's key: add +mode=B)"),
     (["+experiment=paper", "mode.demo_fraction=0.2"],
-     "config 'mode.demo_fraction': mode default has no such key (mode A's key: add +mode=A)"),
+     "config 'mode.demo_fraction': mode default has no such key (mode A and R's key: add +mode=A "
+     "or +mode=R)"),
     (["+mode=A", "mode.stage2.eps_start=0.5"],
      "config 'mode.stage2.eps_start': mode A has no such key (mode B's key: add +mode=B)"),
     (["+mode=B", "mode.margin_weight=0"],
-     "config 'mode.margin_weight': mode B has no such key (mode A's key: add +mode=A)"),
+     "config 'mode.margin_weight': mode B has no such key (mode A and R's key: add +mode=A or "
+     "+mode=R)"),
     (["mode.example.episodes=3"],
-     "config 'mode.example.episodes': mode default has no such key (mode A and B's key: add "
-     "+mode=A or +mode=B)"),
+     "config 'mode.example.episodes': mode default has no such key (mode A, B and R's key: add "
+     "+mode=A or +mode=B or +mode=R)"),
 ])
 def test_a_key_of_another_mode_is_refused_in_one_line_naming_the_mode_that_has_it(
         compose_cfg, overrides, line):

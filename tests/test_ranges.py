@@ -36,6 +36,7 @@ PLACES: dict[str, tuple[str, tuple[str, ...], str]] = {
     "mode_schema/default": ("train", (), "mode."),
     "mode_schema/A": ("train", ("+mode=A",), "mode."),
     "mode_schema/B": ("train", ("+mode=B",), "mode."),
+    "mode_schema/R": ("train", ("+mode=R",), "mode."),
 }
 """Registered group schema -> (command, overrides, prefix of its keys) where its start check runs;
 ``<command>_schema`` is the command's own top level."""
