@@ -31,6 +31,21 @@ Cfg = Any
 """The composed ``train`` config (a DictConfig)."""
 
 
+class HeadTD:
+    """Stands for the value head's own TD term in a stage's ``terms``: the builder puts there
+    the term the network declares (``td_term``: eq. (1) for Table I, cross-entropy for C51 and
+    HL-Gauss), so a mode names no head and a head no mode."""
+
+    name = "td"
+
+    def __repr__(self) -> str:
+        return "HEAD_TD"
+
+
+HEAD_TD = HeadTD()
+"""The value head's own TD term, as a stage lists it (``(HEAD_TD, MarginTerm(...))``)."""
+
+
 @dataclass(frozen=True)
 class StageSpec:
     """One stage of a mode."""
@@ -40,8 +55,9 @@ class StageSpec:
     demo_share: Callable[[Cfg], float] = lambda cfg: 0.0
     """Share of the buffer (and of each stratified batch) the prior knowledge holds: 0 the
     agent's data only; 1 prior knowledge only, which makes the stage offline."""
-    terms: Callable[[Cfg], tuple[Any, ...]] = lambda cfg: ()
-    """Loss terms besides eq. (1)'s TD term, which every stage has (:mod:`memrl.dqn.losses`)."""
+    terms: Callable[[Cfg], tuple[Any, ...]] = lambda cfg: (HEAD_TD,)
+    """Its loss terms, summed in order (:mod:`memrl.dqn.losses`); :data:`HEAD_TD` stands for the
+    value head's own TD term (a stage without it trains on its other terms alone)."""
     exploration: Callable[[Cfg], tuple[float, float, int]] = \
         lambda cfg: (cfg.agent.eps_start, cfg.agent.eps_end, cfg.agent.eps_decay_frames)
     """Epsilon schedule (start, end, decay env steps) of an online stage."""
@@ -246,9 +262,10 @@ EXPLAINERS.append(explain_key_error)
 
 # ------------------------------------------------------------------ Default, A and B (the paper)
 def _margin(weight: float, margin: float) -> tuple[Any, ...]:
+    """The head's TD term, then DQfD's margin term where its weight is positive."""
     from memrl.dqn.losses import margin_terms
 
-    return tuple(margin_terms(float(weight), float(margin)))
+    return (HEAD_TD, *margin_terms(float(weight), float(margin)))
 
 
 def _need(ok: bool, key: str, message: str) -> None:

@@ -14,7 +14,7 @@ from memrl.data.recipe import DemoRecipe
 from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.loop import Trainer
 from memrl.dqn.losses import MarginTerm, TDTerm
-from memrl.modes import MODES, DefaultModeConfig, ModeSpec, StageSpec, by_label, register_mode, used
+from memrl.modes import HEAD_TD, MODES, DefaultModeConfig, ModeSpec, StageSpec, by_label, register_mode, used
 from memrl.schemas import STUDY_MODES
 from memrl.train import train
 from tests.helpers import (
@@ -44,7 +44,7 @@ def toy_mode():
     spec = register_mode(ModeSpec(
         "toy", "Toy",
         (StageSpec("toy_online", demo_share=lambda cfg: 0.5,
-                   terms=lambda cfg: (MarginTerm(1.0, 0.5),),
+                   terms=lambda cfg: (HEAD_TD, MarginTerm(1.0, 0.5)),
                    exploration=lambda cfg: (0.5, 0.05, 300)),),
         schema=ToyModeConfig))
     ConfigStore.instance().store(group="mode", name="toy", package="_global_",

@@ -20,7 +20,7 @@ from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, demo_buffer
 from memrl.dqn.exploration import make_exploration
 from memrl.dqn.losses import LossTerm, td_term
 from memrl.dqn.stage1 import split_demos
-from memrl.modes import StageSpec
+from memrl.modes import HeadTD, StageSpec
 
 EXPLORATION_OPTIONS = ("ez_mu", "ez_max_duration", "temperature_start", "temperature_end")
 
@@ -34,7 +34,7 @@ class Stage:
     explore: EGreedyModule | None
     """Epsilon-greedy of the acting policy (None: an offline stage, no env steps)."""
     terms: tuple[LossTerm, ...]
-    """Its loss: eq. (1)'s TD term, then the spec's."""
+    """Its loss terms as the spec lists them, the value head's own TD term in ``HEAD_TD``'s place."""
     lr: float | None = None
     """Its own learning rate (None: the optimizer's)."""
     held_out: TensorDictBase | None = None
@@ -74,7 +74,8 @@ def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, 
     nstep = {"n_step": int(a.n_step if n_step is None else n_step), "gamma": float(a.gamma)}
     if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
         nstep["stride"] = int(cfg.env.frame_stride)
-    terms = (td_term(a, cfg.network), *spec.terms(cfg))  # the value head's own TD term first
+    # the stage's terms, HEAD_TD replaced by the value head's own TD term
+    terms = tuple(td_term(a, cfg.network) if isinstance(t, HeadTD) else t for t in spec.terms(cfg))
     lr = spec.lr(cfg)
     lr = None if lr is None else float(lr)
     share = float(spec.demo_share(cfg))
