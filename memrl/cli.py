@@ -233,7 +233,7 @@ def stopped_line(stop: Interrupted, cfg: DictConfig, out: Path, overrides: list[
     overrides = [*overrides, *(o for o in output_overrides() if o not in overrides)]  # hydra.run.dir
     task = str(cfg.get("task_name", "train"))
     if task == "train":
-        from memrl.dqn import checkpoint as ckpt
+        from memrl.checkpoint import resume as ckpt
 
         try:
             ckpt.find(out)

@@ -6,7 +6,7 @@ label, its config schema (a dataclass: the keys of its ``mode`` node, their type
 the composed ``mode`` node holds these keys and no other), its range checks and its stages in
 order. Each stage
 (:class:`StageSpec`) gives its buffer recipe (the share the prior knowledge holds), its
-exploration, its loss terms (:mod:`memrl.dqn.losses`), its optimizer settings and its stop
+exploration, its loss terms (:mod:`memrl.losses`), its optimizer settings and its stop
 rule: an online stage runs until the run's budget; an offline stage (prior knowledge only,
 no env steps) until its checks stop it (:mod:`memrl.dqn.stage1`, settings in
 ``mode.<settings>``), then the next stage starts from its weights.
@@ -41,7 +41,7 @@ class StageSpec:
     """Share of the buffer (and of each stratified batch) the prior knowledge holds: 0 the
     agent's data only; 1 prior knowledge only, which makes the stage offline."""
     terms: Callable[[Cfg], tuple[Any, ...]] = lambda cfg: ()
-    """Loss terms besides eq. (1)'s TD term, which every stage has (:mod:`memrl.dqn.losses`)."""
+    """Loss terms besides eq. (1)'s TD term, which every stage has (:mod:`memrl.losses`)."""
     exploration: Callable[[Cfg], tuple[float, float, int]] = \
         lambda cfg: (cfg.agent.eps_start, cfg.agent.eps_end, cfg.agent.eps_decay_frames)
     """Epsilon schedule (start, end, decay env steps) of an online stage."""
@@ -241,7 +241,7 @@ EXPLAINERS.append(explain_key_error)
 
 # ------------------------------------------------------------------ Default, A and B (the paper)
 def _margin(weight: float, margin: float) -> tuple[Any, ...]:
-    from memrl.dqn.losses import margin_terms
+    from memrl.losses import margin_terms
 
     return tuple(margin_terms(float(weight), float(margin)))
 

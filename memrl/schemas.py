@@ -104,11 +104,14 @@ def _eval_node(cfg: DictConfig) -> None:
 
 
 def check_env(node: Any, key: str = "env") -> None:
-    """The env node, with the env's own validator (its message names ``env config '<key>'``)."""
+    """The env node, with the env's own validator (its message names ``env config '<key>'``);
+    learned traffic loads :mod:`memrl.checkpoint`, which registers the learned cars with the env."""
     from memrl.envs.config import validate_env_config
 
     values = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node)
     validate_env_config(values)  # type: ignore[arg-type]
+    if (values.get("opponent") or {}).get("type", "constant") != "constant":  # type: ignore[union-attr]
+        import memrl.checkpoint  # noqa: F401 - registers the learned cars' controller with the env
 
 
 def check_device(value: Any, key: str) -> None:
@@ -144,7 +147,7 @@ def check_train(cfg: DictConfig) -> None:
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
     if cfg.env.opponent.type != "constant":  # every pattern must match a past agent that saw these frames
-        from memrl.modules.opponents import check_pool_views, pool_views
+        from memrl.checkpoint.opponents import check_pool_views, pool_views
 
         check_pool_views(pool_views([str(p) for p in cfg.env.opponent.pool]), cfg.env)
     check_device(cfg.device, "device")
@@ -171,8 +174,7 @@ def check_train(cfg: DictConfig) -> None:
     offline = [s.settings for s in mode.stages if s.settings is not None]
     init = cfg.mode[offline[0]].get("init") if offline else None
     if init is not None:
-        from memrl.checkpoint import stage1_source
-        from memrl.dqn.checkpoint import CheckpointError
+        from memrl.checkpoint import CheckpointError, stage1_source
 
         try:
             stage1_source(str(init), cfg.env, cfg.network)
@@ -184,7 +186,7 @@ def check_resume(cfg: DictConfig) -> None:
     """``resume`` names a run folder with a complete checkpoint, intact (its manifest) and made
     under this config: checked before Hydra writes into the folder, so a refused resume leaves
     nothing there (and ``resume=<any folder>`` writes nothing into a folder that is no run)."""
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
 
     run = Path(cfg.resume)
     if not run.is_dir():

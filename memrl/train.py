@@ -69,7 +69,7 @@ def finished_summary(run_dir: Path, cfg: DictConfig) -> Summary | None:
     import dataclasses
     import json
 
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
     from memrl.dqn.loop import Summary
 
     path = run_dir / "summary.json"

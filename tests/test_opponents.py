@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from memrl.checkpoint import save_qnet
+from memrl.checkpoint.opponents import LearnedCarController, OpponentPoolError
 from memrl.envs.config import EnvConfigError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import ACTIONS
-from memrl.modules.opponents import LearnedCarController, OpponentPoolError
 from memrl.modules.qnet import QNetwork
 from memrl.train import train
 from tests.helpers import TINY, save_pool

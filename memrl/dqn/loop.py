@@ -28,10 +28,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
+from memrl.checkpoint import resume as ckpt
 from memrl.checkpoint import save_qnet, stage1_source
+from memrl.checkpoint.weights import load_weights, save_weights
 from memrl.data.buffers import priority_sampler
 from memrl.data.priority_sampler import reprioritize
-from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.builder import Stage, build_stage
 from memrl.dqn.collector import Collector, EpisodeEnd, Steps
 from memrl.dqn.learner import Learner
@@ -47,7 +48,6 @@ from memrl.modes import mode_of
 from memrl.modules.qnet import arch_of
 from memrl.progress import drawn, progress_bar
 from memrl.stop import raise_pending, stop_requested
-from memrl.weights import load_weights, save_weights
 
 log = logging.getLogger(__name__)
 

@@ -3,7 +3,8 @@
 A stage lists its terms (:mod:`memrl.modes`); the learner is built with them and adds them
 up (:meth:`memrl.dqn.learner.Learner.loss`). A new term is one class here with a ``__call__``
 that takes the batch and the learner's pieces, and one line in the stage that uses it
-(``docs/extending.md``).
+(``docs/extending.md``). The terms sit beside the modes that name them, below the trainer
+that sums them (``tests/test_import_cycles.py``: the layer order).
 """
 
 from __future__ import annotations
