@@ -55,8 +55,8 @@ def stopped_with_parent(pool: Any) -> Iterator[None]:
     where no handler of :mod:`memrl.stop` is installed):
     cancel the jobs not started, send SIGTERM to the workers (a training run writes its
     checkpoint and stops), wait for them (no orphans, no leaked semaphores), then re-raise.
-    Without the guard's kinds, Ctrl-C in a multi-worker evaluation left the workers to drive
-    every queued episode before the command ended."""
+    Without this, Ctrl-C in a multi-worker evaluation left the workers to drive every queued
+    episode before the command ended."""
     try:
         yield
     except (Interrupted, KeyboardInterrupt):
