@@ -13,8 +13,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from memrl import signals
 from memrl.errors import ONE_LINE_ENV, USAGE_EXIT, is_user_error, one_line
+from memrl.stop import Interrupted, Stopped, install, output_overrides
 
 log = logging.getLogger(__name__)
 
@@ -99,14 +99,14 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
         share_group_listing()
     # Hand-written: Hydra prints its own multi-line trace for every error; with
     # HYDRA_FULL_ERROR it raises instead, and the user errors get one line here.
-    signals.install()  # SIGINT / SIGTERM: a clean stop with the resume command (memrl.signals)
+    install()  # SIGINT / SIGTERM: a clean stop with the resume command (memrl.stop)
     saved = {k: os.environ.get(k) for k in ("HYDRA_FULL_ERROR", ONE_LINE_ENV)}
     os.environ["HYDRA_FULL_ERROR"] = "1"
     if one_line_errors:
         os.environ[ONE_LINE_ENV] = "1"
     try:
         return main()
-    except signals.Interrupted as stop:  # before the task started (composition, checks, Hydra's files)
+    except Interrupted as stop:  # before the task started (composition, checks, Hydra's files)
         print(interrupted_before_task(stop), file=sys.stderr)
         sys.exit(stop.exit_status)
     except Exception as err:
@@ -122,7 +122,7 @@ def run_hydra(main: Callable[[], Any], positional_key: str | None = None) -> Any
                 os.environ[key] = value
 
 
-def interrupted_before_task(stop: signals.Interrupted) -> str:
+def interrupted_before_task(stop: Interrupted) -> str:
     """The line for a signal that came before :func:`run_task` took over: during composition
     and the start checks (nothing made: ``interrupted by SIGTERM``), or once Hydra had made the
     run folder (``.hydra/``, the log), which is then handled as a stop before the first
@@ -189,15 +189,13 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     from hydra.types import RunMode
 
     from memrl.hydra_callbacks import ERROR_FILE
-    from memrl.stop import Stopped
-
     hydra_cfg = HydraConfig.get()
     out = Path(hydra_cfg.runtime.output_dir)
     log_file = out / f"{cfg.get('task_name') or hydra_cfg.job.name}.log"
     log_stat = log_file.stat() if log_file.is_file() else None
     try:
         return task(cfg)
-    except signals.Interrupted as stop:
+    except Interrupted as stop:
         print(stopped_line(stop, cfg, out, list(hydra_cfg.overrides.task)), file=sys.stderr)
         sys.exit(stop.exit_status)
     except Stopped as err:  # ended early on request (Esc, Ctrl-C, SIGTERM): one line, its status
@@ -225,19 +223,17 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
         return None
 
 
-def stopped_line(stop: signals.Interrupted, cfg: DictConfig, out: Path, overrides: list[str]) -> str:
+def stopped_line(stop: Interrupted, cfg: DictConfig, out: Path, overrides: list[str]) -> str:
     """The one line printed when a signal stopped a command: what was kept and the exact
     command that continues it (train: ``resume=<run folder>``; the others: the same command,
     which reuses what is finished). A new training run stopped before its first checkpoint has
     nothing to resume: its folder is removed."""
     import shlex
 
-    from memrl.stop import output_overrides
-
     overrides = [*overrides, *(o for o in output_overrides() if o not in overrides)]  # hydra.run.dir
     task = str(cfg.get("task_name", "train"))
     if task == "train":
-        from memrl.dqn import checkpoint as ckpt
+        from memrl.checkpoint import resume as ckpt
 
         try:
             ckpt.find(out)

@@ -6,7 +6,7 @@ label, its config schema (a dataclass: the keys of its ``mode`` node, their type
 the composed ``mode`` node holds these keys and no other), its range checks and its stages in
 order. Each stage
 (:class:`StageSpec`) gives its buffer recipe (the share the prior knowledge holds), its
-exploration, its loss terms (:mod:`memrl.dqn.losses`), its optimizer settings and its stop
+exploration, its loss terms (:mod:`memrl.losses`), its optimizer settings and its stop
 rule: an online stage runs until the run's budget; an offline stage (prior knowledge only,
 no env steps) until its checks stop it (:mod:`memrl.dqn.stage1`, settings in
 ``mode.<settings>``), then the next stage starts from its weights.
@@ -56,7 +56,7 @@ class StageSpec:
     """Share of the buffer (and of each stratified batch) the prior knowledge holds: 0 the
     agent's data only; 1 prior knowledge only, which makes the stage offline."""
     terms: Callable[[Cfg], tuple[Any, ...]] = lambda cfg: (HEAD_TD,)
-    """Its loss terms, summed in order (:mod:`memrl.dqn.losses`); :data:`HEAD_TD` stands for the
+    """Its loss terms, summed in order (:mod:`memrl.losses`); :data:`HEAD_TD` stands for the
     value head's own TD term (a stage without it trains on its other terms alone)."""
     exploration: Callable[[Cfg], tuple[float, float, int]] = \
         lambda cfg: (cfg.agent.eps_start, cfg.agent.eps_end, cfg.agent.eps_decay_frames)
@@ -263,7 +263,7 @@ EXPLAINERS.append(explain_key_error)
 # ------------------------------------------------------------------ Default, A and B (the paper)
 def _margin(weight: float, margin: float) -> tuple[Any, ...]:
     """The head's TD term, then DQfD's margin term where its weight is positive."""
-    from memrl.dqn.losses import margin_terms
+    from memrl.losses import margin_terms
 
     return (HEAD_TD, *margin_terms(float(weight), float(margin)))
 

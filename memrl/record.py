@@ -16,7 +16,7 @@ from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
 from memrl.errors import UserError, instantiate_checked
 from memrl.schemas import check_record
-from memrl.stop import EXIT_OF, SIGINT_EXIT, SIGTERM_EXIT, SignalGuard, Stopped
+from memrl.stop import EXIT_OF, SignalGuard, Stopped, how_stopped
 
 if TYPE_CHECKING:
     from memrl.data.recording import Recording
@@ -76,8 +76,7 @@ def record(cfg: DictConfig) -> RecordSummary:
     summary = RecordSummary(path, stats["recorded"], stats["kept"], time.perf_counter() - start,
                             size, rec.stopped_early)
     if rec.stopped_early:
-        raise Stopped(_stopped_line(rec, summary, out, planned, str(cfg.demos.source)),
-                      rec.interrupted or SIGINT_EXIT)
+        raise Stopped.by(_stopped_line(rec, summary, out, planned, str(cfg.demos.source)), rec.interrupted)
     _print(summary, cfg.keep)
     if guard.pending is not None:  # a signal during the save: the dataset is whole; stop now
         raise Stopped(f"interrupted during the save; the dataset is complete: {path}",
@@ -116,8 +115,7 @@ def _record(cfg: DictConfig, guard: SignalGuard) -> tuple[Path | None, Recording
 
 
 def _stopped_line(rec: Recording, summary: RecordSummary, out: Path, planned: int, source: str) -> str:
-    how = {None: "stopped", SIGINT_EXIT: "interrupted (SIGINT)", SIGTERM_EXIT: "interrupted (SIGTERM)"}
-    what = how.get(rec.interrupted, "stopped")
+    what = how_stopped(rec.interrupted)
     if not rec.episodes:
         return f"{what} before any episode finished; nothing saved"
     kept = summary.kept

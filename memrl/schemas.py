@@ -104,11 +104,14 @@ def _eval_node(cfg: DictConfig) -> None:
 
 
 def check_env(node: Any, key: str = "env") -> None:
-    """The env node, with the env's own validator (its message names ``env config '<key>'``)."""
+    """The env node, with the env's own validator (its message names ``env config '<key>'``);
+    learned traffic loads :mod:`memrl.checkpoint`, which registers the learned cars with the env."""
     from memrl.envs.config import validate_env_config
 
     values = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node)
     validate_env_config(values)  # type: ignore[arg-type]
+    if (values.get("opponent") or {}).get("type", "constant") != "constant":  # type: ignore[union-attr]
+        import memrl.checkpoint  # noqa: F401 - registers the learned cars' controller with the env
 
 
 def check_device(value: Any, key: str) -> None:
@@ -139,7 +142,7 @@ def check_train(cfg: DictConfig) -> None:
     check_env(cfg.env)  # before the relations of check_train_config read env keys
     check_train_config(cfg)
     check_network(cfg.network)
-    from memrl.dqn.losses import td_term
+    from memrl.losses import td_term
 
     td_term(cfg.agent, cfg.network)  # the head's TD term takes this agent config (refusals name the key)
     if cfg.self_play_every and cfg.env.opponent.type == "constant":
@@ -147,7 +150,7 @@ def check_train(cfg: DictConfig) -> None:
                            "opponent=learned or opponent=mixed (or self_play_every=0)")
     _eval_node(cfg)
     if cfg.env.opponent.type != "constant":  # every pattern must match a past agent that saw these frames
-        from memrl.modules.opponents import check_pool_views, pool_views
+        from memrl.checkpoint.opponents import check_pool_views, pool_views
 
         check_pool_views(pool_views([str(p) for p in cfg.env.opponent.pool]), cfg.env)
     check_device(cfg.device, "device")
@@ -174,8 +177,7 @@ def check_train(cfg: DictConfig) -> None:
     offline = [s.settings for s in mode.stages if s.settings is not None]
     init = cfg.mode[offline[0]].get("init") if offline else None
     if init is not None:
-        from memrl.checkpoint import stage1_source
-        from memrl.dqn.checkpoint import CheckpointError
+        from memrl.checkpoint import CheckpointError, stage1_source
         from memrl.modules.qnet import network_for_task
 
         try:
@@ -188,7 +190,7 @@ def check_resume(cfg: DictConfig) -> None:
     """``resume`` names a run folder with a complete checkpoint, intact (its manifest) and made
     under this config: checked before Hydra writes into the folder, so a refused resume leaves
     nothing there (and ``resume=<any folder>`` writes nothing into a folder that is no run)."""
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
 
     run = Path(cfg.resume)
     if not run.is_dir():

@@ -178,8 +178,8 @@ def study(cfg: DictConfig) -> StudyResult:
     Args:
         cfg: the composed ``study`` config.
     """
+    from memrl.checkpoint.opponents import check_pool_views, pool_views
     from memrl.evaluation.protocol import check_protocol, suffixed
-    from memrl.modules.opponents import check_pool_views, pool_views
     from memrl.report import report, stats_config
     from memrl.schemas import check_train
     from memrl.studies import evaluation as ev

@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from memrl import signals
 from memrl.cli import run_hydra, run_task
 from memrl.configs import register_configs
 from memrl.schemas import check_train, check_writable
+from memrl.stop import Interrupted, deferred, interruption
 
 if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
     from tensordict import TensorDictBase
@@ -69,7 +69,7 @@ def finished_summary(run_dir: Path, cfg: DictConfig) -> Summary | None:
     import dataclasses
     import json
 
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
     from memrl.dqn.loop import Summary
 
     path = run_dir / "summary.json"
@@ -136,12 +136,12 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
             if cfg.resume and str(cfg.agent.precision) == "auto" and (
                     change := auto_precision_change(read_provenance(run_dir))):
                 log.warning(change)
-            with signals.deferred():  # a signal stops at the loop's next checkpoint
+            with deferred():  # a signal stops at the loop's next checkpoint
                 try:
                     summary = trainer.run()
                 except Exception as err:  # a second signal, raised at once, masked on its way up
-                    if (stop := signals.interruption(err)) is not None:
-                        raise signals.Interrupted(stop.signum) from err
+                    if (stop := interruption(err)) is not None:
+                        raise Interrupted(stop.signum) from err
                     raise
     log.info("done: %d episodes, %d frames, %d updates in %.0f s; summary in %s",
              summary.episodes, summary.frames, summary.updates, summary.wall_s,

@@ -16,6 +16,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from memrl.stop import Interrupted, install
+
 PR_SET_PDEATHSIG = 1
 """``prctl`` option: the signal this process gets when its parent ends (linux/prctl.h)."""
 
@@ -41,28 +43,23 @@ def die_with_parent() -> None:
 
 def worker_start() -> None:
     """Pool initializer of every memrl pool: :func:`die_with_parent`, and SIGINT / SIGTERM
-    handled as in the main process (:mod:`memrl.signals`): a training worker stops at its next
-    checkpoint, any other raises :class:`~memrl.signals.Interrupted` into its future."""
-    from memrl import signals
-
+    handled as in the main process (:func:`memrl.stop.install`): a training worker stops at its
+    next checkpoint, any other ends at once."""
     die_with_parent()
-    signals.install(worker=True)
+    install(worker=True)
 
 
 @contextmanager
 def stopped_with_parent(pool: Any) -> Iterator[None]:
-    """On a stop in the parent (:class:`~memrl.signals.Interrupted`, or inside a
-    :class:`~memrl.stop.SignalGuard` ``KeyboardInterrupt`` / :class:`~memrl.stop.Terminated`):
+    """On a stop in the parent (:class:`~memrl.stop.Interrupted`, or ``KeyboardInterrupt``
+    where no handler of :mod:`memrl.stop` is installed):
     cancel the jobs not started, send SIGTERM to the workers (a training run writes its
     checkpoint and stops), wait for them (no orphans, no leaked semaphores), then re-raise.
-    Without the guard's kinds, Ctrl-C in a multi-worker evaluation left the workers to drive
-    every queued episode before the command ended."""
-    from memrl import signals
-    from memrl.stop import Terminated
-
+    Without this, Ctrl-C in a multi-worker evaluation left the workers to drive every queued
+    episode before the command ended."""
     try:
         yield
-    except (signals.Interrupted, KeyboardInterrupt, Terminated):
+    except (Interrupted, KeyboardInterrupt):
         processes = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
         for proc in processes:

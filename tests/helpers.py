@@ -139,7 +139,7 @@ def assert_kill_and_resume_is_exact(compose_cfg, tmp_path: Path, demos, monkeypa
     """Train ``TINY + extra`` (12 episodes, a checkpoint every 3) uninterrupted into ``full``,
     and killed after 8 episodes then resumed into ``cut``: same counters, episode rows, final
     weights and agent buffers. Returns the config and the uninterrupted run's summary."""
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
     from memrl.train import train
 
     cfg = compose_cfg("train", TINY + extra)

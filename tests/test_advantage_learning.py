@@ -9,7 +9,7 @@ import torch
 from memrl.data.priority_sampler import TD_KEY
 from memrl.dqn.config import AgentConfig, TrainConfigError, check_train_config
 from memrl.dqn.learner import Learner
-from memrl.dqn.losses import TDTerm, target_action_gap
+from memrl.losses import TDTerm, target_action_gap
 from tests.helpers import EVERY_STAGE, TINY, tiny_mode
 from tests.test_learner import batch
 

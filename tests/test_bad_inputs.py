@@ -343,7 +343,7 @@ def test_read_only_data_folder_is_found_before_the_example_is_recorded(compose_c
 
 
 def test_full_disk_during_a_checkpoint_names_the_folder(tmp_path, monkeypatch):
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
 
     def short_write(obj, f, *args, **kwargs):
         raise RuntimeError("[enforce fail at inline_container.cc:778] . PytorchStreamWriter "

@@ -9,7 +9,7 @@ import subprocess
 
 import pytest
 
-from memrl.dqn import checkpoint as ckpt
+from memrl.checkpoint import resume as ckpt
 from memrl.dqn.learner import native_bf16
 from memrl.errors import is_user_error, one_line
 from memrl.provenance import PROVENANCE_FILE, auto_precision_change, cpu_model

@@ -7,7 +7,7 @@ from tensordict import TensorDict
 
 from memrl.dqn.config import AgentConfig
 from memrl.dqn.learner import Learner
-from memrl.dqn.losses import MarginTerm, TDTerm
+from memrl.losses import MarginTerm, TDTerm
 
 
 def batch(n: int = 6, seed: int = 0) -> TensorDict:

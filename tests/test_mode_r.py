@@ -29,7 +29,7 @@ def test_mode_r_samples_half_demos_from_the_first_update_with_no_offline_stage(c
 
 def test_mode_r_builds_the_margin_term_only_when_asked(compose_cfg, demos):
     from memrl.dqn.builder import build_stage
-    from memrl.dqn.losses import MarginTerm, TDTerm
+    from memrl.losses import MarginTerm, TDTerm
 
     for extra, terms in (([], (TDTerm(),)), (["mode.margin_weight=2", "mode.margin=0.5"],
                                              (TDTerm(), MarginTerm(2.0, 0.5)))):

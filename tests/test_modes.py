@@ -10,10 +10,10 @@ import pytest
 import torch
 from hydra.core.config_store import ConfigStore
 
+from memrl.checkpoint import resume as ckpt
 from memrl.data.recipe import DemoRecipe
-from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.loop import Trainer
-from memrl.dqn.losses import MarginTerm, TDTerm
+from memrl.losses import MarginTerm, TDTerm
 from memrl.modes import HEAD_TD, MODES, DefaultModeConfig, ModeSpec, StageSpec, by_label, register_mode, used
 from memrl.schemas import STUDY_MODES
 from memrl.train import train

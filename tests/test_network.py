@@ -16,12 +16,12 @@ from hydra.utils import instantiate
 from torch import nn
 
 from memrl.checkpoint import load_qnet, load_stage1_qnet, save_qnet
+from memrl.checkpoint import resume as ckpt
+from memrl.checkpoint.opponents import LearnedCarController
 from memrl.deploy import deploy_config, make_policy
-from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.config import AgentConfig
 from memrl.dqn.learner import Learner
 from memrl.errors import USAGE_EXIT
-from memrl.modules.opponents import LearnedCarController
 from memrl.modules.policy import GreedyPolicy
 from memrl.modules.qnet import TABLE1, DuelingQNetwork, QNetwork, build_qnet
 from memrl.train import train

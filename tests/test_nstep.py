@@ -230,7 +230,7 @@ def test_the_learner_loss_is_eq_1_on_the_n_step_target():
 
 
 def test_checkpoints_from_before_n_step_resume_as_one_step_runs():
-    from memrl.dqn.checkpoint import with_legacy_values
+    from memrl.checkpoint.resume import with_legacy_values
 
     assert with_legacy_values({"agent": {"gamma": 0.95}})["agent"]["n_step"] == 1
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from memrl.dqn import checkpoint as ckpt
+from memrl.checkpoint import resume as ckpt
 from memrl.train import train
 from tests.helpers import (
     TINY,

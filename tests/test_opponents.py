@@ -2,19 +2,26 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 from memrl.checkpoint import save_qnet
+from memrl.checkpoint.opponents import LearnedCarController, OpponentPoolError
 from memrl.envs.config import EnvConfigError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import make_env, unwrap
 from memrl.envs.vehicles import ACTIONS
-from memrl.modules.opponents import LearnedCarController, OpponentPoolError
 from memrl.modules.qnet import QNetwork
 from memrl.train import train
 from tests.helpers import TINY, save_pool
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -95,6 +102,35 @@ def test_learned_cars_are_reproducible_from_the_seed(pool):
 def test_a_bad_pool_fails_at_start_with_a_clear_error(pool_value, error, match):
     with pytest.raises(error, match=match):
         make_env({"opponent": {"type": "learned", "pool": pool_value}})
+
+
+def test_the_env_makes_learned_cars_through_its_registry(pool, monkeypatch):
+    """The env package imports nothing above it: memrl.checkpoint registers the learned cars'
+    controller; without it, learned traffic is refused naming what to import."""
+    from memrl.checkpoint.opponents import learned_cars
+    from memrl.envs import controllers
+
+    assert controllers.CONTROLLERS["learned"] is learned_cars
+    monkeypatch.delitem(controllers.CONTROLLERS, "learned")
+    with pytest.raises(EnvConfigError, match="learned cars, which memrl.checkpoint registers: import memrl"):
+        learned_env(pool)
+
+
+def test_the_gym_env_drives_learned_cars_once_memrl_checkpoint_is_imported(pool):
+    code = ("import gymnasium, memrl.envs\n"
+            f"config = {{'opponent': {{'type': 'learned', 'pool': {list(pool)!r}}}}}\n"
+            "try:\n    gymnasium.make('memrl/LaneChange-v0', config=config).reset(seed=0)\n"
+            "except ValueError as err:\n    print('refused:', err)\n"
+            "import memrl.checkpoint\n"
+            "env = gymnasium.make('memrl/LaneChange-v0', config=config)\n"
+            "env.reset(seed=0)\n"
+            "print('kinds:', [c.kind for c in env.unwrapped.controllers])\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.splitlines()
+    assert lines[0].startswith("refused: env config 'opponent.type': learned traffic needs the controller "
+                               "of learned cars") and lines[1] == "kinds: ['learned']"
 
 
 def test_a_corrupt_checkpoint_in_the_pool_is_named(tmp_path):

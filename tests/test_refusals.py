@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from memrl.dqn import checkpoint as ckpt
+from memrl.checkpoint import resume as ckpt
 from memrl.errors import USAGE_EXIT, is_user_error, one_line
 from tests.helpers import TINY, tiny
 

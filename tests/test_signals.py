@@ -156,20 +156,20 @@ def test_signal_during_a_study_keeps_its_runs_and_the_printed_command_finishes_i
 
 
 def test_a_deferred_stop_waits_for_the_check_and_a_second_signal_stops_at_once():
-    from memrl import signals
+    from memrl import stop
 
-    signals.install()
+    stop.install()
     try:
-        with pytest.raises(signals.Interrupted) as info:
-            with signals.deferred():
+        with pytest.raises(stop.Interrupted) as info:
+            with stop.deferred():
                 os.kill(os.getpid(), signal.SIGTERM)
-                assert signals.stop_requested() == signal.SIGTERM  # only asked, not raised
-                with pytest.raises(signals.Interrupted):  # a second signal: at once
+                assert stop.stop_requested() == signal.SIGTERM  # only asked, not raised
+                with pytest.raises(stop.Interrupted):  # a second signal: at once
                     os.kill(os.getpid(), signal.SIGINT)
         assert info.value.exit_status == 143  # the stop not acted on is raised on leaving
-        assert signals.stop_requested() is None
+        assert stop.stop_requested() is None
     finally:
-        signals.uninstall()
+        stop.uninstall()
 
 
 def test_a_signal_masked_by_library_clean_up_still_stops_training_as_a_signal(
@@ -177,8 +177,8 @@ def test_a_signal_masked_by_library_clean_up_still_stops_training_as_a_signal(
     # A second signal raises at once, wherever the loop is; inside DQNLoss, tensordict's
     # to_module context turns it into a RuntimeError on its way out (tensordict 0.11). train()
     # must still end as a stop (the study then stops instead of starting its next run).
-    from memrl import signals
     from memrl.modules.qnet import QNetwork
+    from memrl.stop import Interrupted
     from memrl.train import train
     from tests.helpers import TINY
 
@@ -188,29 +188,29 @@ def test_a_signal_masked_by_library_clean_up_still_stops_training_as_a_signal(
         if torch.is_grad_enabled():  # the online forward inside DQNLoss (acting runs without)
             calls["n"] += 1
             if calls["n"] == 10:
-                raise signals.Interrupted(signal.SIGTERM)
+                raise Interrupted(signal.SIGTERM)
         return forward(self, x)
 
     monkeypatch.setattr(QNetwork, "forward", interrupted_forward)
-    with pytest.raises(signals.Interrupted) as info:
+    with pytest.raises(Interrupted) as info:
         train(compose_cfg("train", TINY + ["total_episodes=6"]), tmp_path / "run", demos=demos)
     assert info.value.signum == signal.SIGTERM and calls["n"] == 10
 
 
 def test_interruption_finds_the_signal_behind_other_errors():
-    from memrl import signals
+    from memrl.stop import Interrupted, interruption
 
-    stop = signals.Interrupted(signal.SIGINT)
+    stop = Interrupted(signal.SIGINT)
     try:
         try:
             raise stop
-        except signals.Interrupted:
+        except Interrupted:
             raise RuntimeError("clean-up failed") from None  # __context__ is kept
     except RuntimeError as err:
         masked = err
-    assert signals.interruption(masked) is stop
-    assert signals.interruption(RuntimeError("no signal")) is None
-    assert signals.interruption(ValueError("x")) is None
+    assert interruption(masked) is stop
+    assert interruption(RuntimeError("no signal")) is None
+    assert interruption(ValueError("x")) is None
 
 
 def test_a_stop_once_hydra_made_the_run_folder_removes_it_and_prints_the_command(tmp_path):
@@ -225,7 +225,7 @@ def test_a_stop_once_hydra_made_the_run_folder_removes_it_and_prints_the_command
 
     from memrl.cli import interrupted_before_task
     from memrl.configs import register_configs
-    from memrl.signals import Interrupted
+    from memrl.stop import Interrupted
     from tests.conftest import CONF_DIR
 
     register_configs()

@@ -514,7 +514,7 @@ def test_a_test_traffic_of_agents_trained_on_other_frames_is_refused_before_any_
     paper's plain frames cannot test runs of memrl's default frames (every car's path drawn),
     so the study stops at its start naming the file, before training anything."""
     from memrl.checkpoint import save_qnet
-    from memrl.modules.opponents import OpponentPoolError
+    from memrl.checkpoint.opponents import OpponentPoolError
     from memrl.modules.qnet import QNetwork
     from memrl.study import study
 
@@ -571,7 +571,7 @@ def test_adding_or_changing_a_variant_of_a_study_needs_allow_changes(tmp_path, c
 
 
 def test_a_run_saved_before_the_variant_key_still_resumes(compose_cfg):
-    from memrl.dqn.checkpoint import comparable, config_diff, with_legacy_values
+    from memrl.checkpoint.resume import comparable, config_diff, with_legacy_values
     from memrl.modes import MODES, used
 
     cfg = compose_cfg("train", MODES["default"].own_overrides(TRAIN))  # a Default cell's config
@@ -583,7 +583,7 @@ def test_a_run_saved_before_the_variant_key_still_resumes(compose_cfg):
 def test_a_study_continues_an_earlier_studys_runs_to_a_bigger_budget(tmp_path, compose_cfg):
     """study.extend_from: the earlier run, copied and resumed, ends as an uninterrupted run at
     the bigger budget ends; the earlier study stays as it was; bad sources are refused."""
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
     from memrl.study import study
 
     long = [*TRAIN, "total_episodes=null"]  # the smoke preset also stops at 3 episodes

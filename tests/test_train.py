@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra.errors import HydraException
 
-from memrl.dqn import checkpoint as ckpt
+from memrl.checkpoint import resume as ckpt
 from memrl.dqn.loop import Trainer
 from memrl.errors import UserError, one_line
 from memrl.train import train
@@ -635,7 +635,7 @@ def test_drive_check_counts_the_behaviour_in_its_own_scenes(compose_cfg):
 ])
 def test_each_stage_sets_its_own_margin_weight(compose_cfg, demos, mode, stage, overrides, weight):
     from memrl.dqn.builder import build_stage
-    from memrl.dqn.losses import MarginTerm, TDTerm
+    from memrl.losses import MarginTerm, TDTerm
     from memrl.modes import mode_of
 
     cfg = compose_cfg("train", tiny(mode) + ["mode.stage1.margin=0.6"] + overrides)

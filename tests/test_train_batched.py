@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from memrl.dqn import checkpoint as ckpt
+from memrl.checkpoint import resume as ckpt
 from memrl.dqn.collector import Collector, episode_seed
 from memrl.dqn.loop import Trainer
 from memrl.dqn.schedule import UpdateSchedule

@@ -184,8 +184,8 @@ HEADS = {
 def test_each_head_trains_resumes_exactly_and_loads_back_everywhere(compose_cfg, tmp_path, demos,
                                                                    monkeypatch, name):
     from memrl.checkpoint import load_stage1_qnet
+    from memrl.checkpoint.opponents import LearnedCarController
     from memrl.deploy import deploy_config, make_policy
-    from memrl.modules.opponents import LearnedCarController
     from memrl.modules.policy import GreedyPolicy
 
     overrides, cls = HEADS[name]
@@ -292,7 +292,7 @@ def test_a_toy_head_from_this_file_trains_with_its_own_term_and_resumes_exactly(
 
 def test_a_stages_head_td_is_the_networks_own_term(compose_cfg, demos):
     from memrl.dqn.builder import build_stage
-    from memrl.dqn.losses import MarginTerm, TDTerm
+    from memrl.losses import MarginTerm, TDTerm
     from memrl.modes import HEAD_TD, MODES, ModeSpec, StageSpec
 
     cfg = compose_cfg("train", ["+experiment=smoke", "network=c51", "+mode=A", "agent.gamma=0.9"])

@@ -11,11 +11,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from memrl.checkpoint import load_qnet, load_stage1_qnet, save_qnet
-from memrl.dqn.checkpoint import CheckpointError
+from memrl.checkpoint import CheckpointError, load_qnet, load_stage1_qnet, save_qnet
+from memrl.checkpoint.weights import CHECKSUM_KEY, load_weights, save_weights
 from memrl.errors import is_user_error, one_line
 from memrl.modules.qnet import QNetwork
-from memrl.weights import CHECKSUM_KEY, load_weights, save_weights
 from tests.helpers import TINY, flip_middle_byte, tiny, tree_hashes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -111,26 +110,26 @@ def test_every_weights_file_memrl_writes_carries_its_checksum(smoke_b_run, tmp_p
 
 
 def test_a_file_from_before_checksums_loads_with_one_warning_line(tmp_path, caplog, monkeypatch):
-    import memrl.weights
+    import memrl.checkpoint.weights
 
-    monkeypatch.setattr(memrl.weights, "_warned", set())
+    monkeypatch.setattr(memrl.checkpoint.weights, "_warned", set())
     file = tmp_path / "old" / "final.pt"
     file.parent.mkdir()
     torch.save({"qnet": QNetwork().state_dict(), "env": {}}, file)
-    with caplog.at_level(logging.WARNING, logger="memrl.weights"):
+    with caplog.at_level(logging.WARNING, logger="memrl.checkpoint.weights"):
         load_qnet(file)
         load_qnet(file)  # once per file
-    lines = [r.getMessage() for r in caplog.records if r.name == "memrl.weights"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "memrl.checkpoint.weights"]
     assert lines == [f"{file}: written before weights files carried a checksum; loaded unverified"]
 
 
 def test_the_committed_results_still_load(caplog, monkeypatch):
-    import memrl.weights
+    import memrl.checkpoint.weights
 
-    monkeypatch.setattr(memrl.weights, "_warned", set())  # as in a fresh process
+    monkeypatch.setattr(memrl.checkpoint.weights, "_warned", set())  # as in a fresh process
     run = ROOT / "docs" / "results" / "table3_300k" / "runs" / "B_constant_s4"
-    with caplog.at_level(logging.WARNING, logger="memrl.weights"):
+    with caplog.at_level(logging.WARNING, logger="memrl.checkpoint.weights"):
         assert isinstance(load_qnet(run)[0], torch.nn.Module)
         assert isinstance(load_stage1_qnet(run), torch.nn.Module)
-    lines = [r.getMessage() for r in caplog.records if r.name == "memrl.weights"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "memrl.checkpoint.weights"]
     assert [line.split(": ", 1)[0].rsplit("/", 1)[-1] for line in lines] == ["final.pt", "stage1.pt"]

@@ -134,7 +134,7 @@ def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any
     the architecture; ``stage1``: every sampled row a demo, with the margin term)."""
     from memrl.dqn.config import Stage1Config
     from memrl.dqn.learner import Learner
-    from memrl.dqn.losses import MarginTerm, td_term
+    from memrl.losses import MarginTerm, td_term
     from memrl.modules.qnet import TABLE1
 
     torch.manual_seed(seed)

@@ -1,5 +1,5 @@
 """The opponent pool's forward: one pass per network on its own cars (memrl's
-:meth:`~memrl.modules.opponents.LearnedCarController.q_values`) beside the reference, ``vmap``
+:meth:`~memrl.checkpoint.opponents.LearnedCarController.q_values`) beside the reference, ``vmap``
 over the pool's stacked networks (what memrl did before: every network on every car).
 
 Fresh Table I networks (weights do not change the cost), random 4x84x84 stacks, each car
@@ -48,7 +48,7 @@ def _ms_per_call(fn: Any, seconds: float) -> float:
 def run(cars: list[int], networks: int = 3, seconds: float = 2.0, rounds: int = 3, threads: int = 1,
         seed: int = 0) -> dict[str, Any]:
     """ms per call of both variants at each number of cars (median over ``rounds``)."""
-    from memrl.modules.opponents import LearnedCarController
+    from memrl.checkpoint.opponents import LearnedCarController
     from memrl.modules.qnet import QNetwork
 
     torch.manual_seed(seed)

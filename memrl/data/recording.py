@@ -34,7 +34,7 @@ from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.torchrl_env import env_kwargs, make_env, unwrap
 from memrl.modules.policy import DrivingPolicy, FrameStack, PerturbedPolicy, PolicyModule, StopRecording
 from memrl.progress import progress_bar
-from memrl.stop import SignalGuard, Terminated, exit_status_of
+from memrl.stop import Interrupted, SignalGuard, interrupted_by
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +85,8 @@ class Recording:
     """Indices into ``episodes`` of the kept episodes."""
     transitions: list[TensorDict] = field(default_factory=list)
     stopped_early: bool = False
-    interrupted: int | None = None
-    """Exit status of the signal that stopped it (130 SIGINT, 143 SIGTERM); None: none did."""
+    interrupted: Interrupted | None = None
+    """The signal that stopped it (SIGINT, SIGTERM); None: none did."""
     next_episode: int = 0
     """Index of the first episode not finished (where a later sitting goes on)."""
 
@@ -134,7 +134,7 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
         start: first episode index (a later sitting of a stopped recording).
         kept_before: episodes kept in earlier sittings (for the driver's window).
 
-    Esc (:class:`StopRecording`), Ctrl-C and SIGTERM (:class:`memrl.stop.Terminated`) end it
+    Esc (:class:`StopRecording`), Ctrl-C and SIGTERM (:class:`memrl.stop.Interrupted`) end it
     early: the episode under way is dropped, the finished ones are returned.
     """
     env = make_env(env_config_values(env_cfg), frame_stack=frame_stack,
@@ -173,9 +173,9 @@ def record_episodes(env_cfg: EnvCfg, policy: DrivingPolicy, *, episodes: int, se
     except StopRecording:
         log.info("recording stopped after %d finished episodes", len(rec.episodes))
         rec.stopped_early = True
-    except (KeyboardInterrupt, Terminated) as err:
+    except (KeyboardInterrupt, Interrupted) as err:
         log.info("recording interrupted after %d finished episodes", len(rec.episodes))
-        rec.stopped_early, rec.interrupted = True, exit_status_of(err)
+        rec.stopped_early, rec.interrupted = True, interrupted_by(err)
     finally:
         env.close()
         close = getattr(policy, "close", None)

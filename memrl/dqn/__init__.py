@@ -1,1 +1,2 @@
-"""Double DQN with prior knowledge: config schemas, learner, buffers, loop, checkpoints."""
+"""Double DQN with prior knowledge: config schemas, learner, stages, loop (checkpoints live in
+:mod:`memrl.checkpoint`)."""

@@ -3,7 +3,7 @@
 The stage's spec says what (the share its prior knowledge holds, its epsilon schedule, its loss
 terms, its optimizer settings); this module turns that into TorchRL pieces: the buffer
 (:mod:`memrl.data.buffers`), the exploration module (:mod:`memrl.dqn.exploration`) and the terms
-(:mod:`memrl.dqn.losses`) the learner is started with. Nothing here names a mode.
+(:mod:`memrl.losses`) the learner is started with. Nothing here names a mode.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from torchrl.modules import EGreedyModule
 
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, demo_buffer
 from memrl.dqn.exploration import make_exploration
-from memrl.dqn.losses import LossTerm, td_term
 from memrl.dqn.stage1 import split_demos
+from memrl.losses import LossTerm, td_term
 from memrl.modes import HeadTD, StageSpec
 
 EXPLORATION_OPTIONS = ("ez_mu", "ez_max_duration", "temperature_start", "temperature_end")

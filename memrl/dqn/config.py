@@ -31,7 +31,7 @@ class AgentConfig:
     bootstrap ``gamma^m max Q(s_{t+m})``; a crash within the window ends the sum without a
     bootstrap. 1: the 1-step target of the paper. Applies to agent data and demos alike."""
     advantage_learning: float = spec(0.0, ge=0, lt=1)
-    """Advantage learning's alpha in [0, 1) (Bellemare et al., 2016; :class:`memrl.dqn.losses.TDTerm`):
+    """Advantage learning's alpha in [0, 1) (Bellemare et al., 2016; :class:`memrl.losses.TDTerm`):
     every TD target less alpha (max_b Q_target(s, b) - Q_target(s, a)), which multiplies the
     gap between the best action and the others by 1 / (1 - alpha) (their paper: 0.9). 0: eq. (1).
     Every stage; costs one forward of the target network per update."""

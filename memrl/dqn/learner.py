@@ -15,9 +15,9 @@ from torchrl.objectives import DQNLoss, HardUpdate
 from memrl.data.priority_sampler import TD_KEY
 from memrl.dqn.augment import shift_batch
 from memrl.dqn.config import AgentConfig
-from memrl.dqn.losses import LossTerm, td_term
-from memrl.dqn.values import QFunctions
+from memrl.losses import LossTerm, td_term
 from memrl.modules.qnet import QNetwork, make_q_actor
+from memrl.values import QFunctions
 
 
 def conv_dtype(precision: str) -> torch.dtype | None:
@@ -64,7 +64,7 @@ def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32),
 class Learner:
     """Online/target Q-networks, optimizer and update step.
 
-    The loss is the sum of the current stage's terms (:mod:`memrl.dqn.losses`; by default
+    The loss is the sum of the current stage's terms (:mod:`memrl.losses`; by default
     eq. (1) alone), on the sampled batch shifted by ``agent.augment_shift`` pixels when set.
     A stage change (:meth:`start_stage`) sets the terms and the optimizer; nothing else
     changes the learner.

@@ -28,11 +28,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
-from memrl import signals
+from memrl.checkpoint import resume as ckpt
 from memrl.checkpoint import save_qnet, stage1_source
+from memrl.checkpoint.weights import load_weights, save_weights
 from memrl.data.buffers import priority_sampler
 from memrl.data.priority_sampler import reprioritize
-from memrl.dqn import checkpoint as ckpt
 from memrl.dqn.builder import Stage, build_stage
 from memrl.dqn.collector import Collector, EpisodeEnd, Steps
 from memrl.dqn.learner import Learner
@@ -47,7 +47,7 @@ from memrl.evaluation.periodic import PeriodicEvaluation
 from memrl.modes import mode_of
 from memrl.modules.qnet import arch_of, network_for_task
 from memrl.progress import drawn, progress_bar
-from memrl.weights import load_weights, save_weights
+from memrl.stop import raise_pending, stop_requested
 
 log = logging.getLogger(__name__)
 
@@ -155,9 +155,9 @@ class Trainer:
                            else steps.frames)
                 if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
                     self.save_checkpoint()
-                if signals.stop_requested() and (self.num_envs > 1 or self.collector.between_episodes()):
-                    self.save_checkpoint()  # SIGINT / SIGTERM: a resumable stop (memrl.signals)
-                    signals.stop()
+                if stop_requested() and (self.num_envs > 1 or self.collector.between_episodes()):
+                    self.save_checkpoint()  # SIGINT / SIGTERM: a resumable stop (memrl.stop)
+                    raise_pending()
             batches = self._due_batches()  # the rounds the last steps made due
             self._book(batches, self.rounds.flush(batches))
             self._reprioritize(batches)
@@ -192,8 +192,8 @@ class Trainer:
                 if p.stop_reason:
                     self._finish_stage1()
                 self.save_checkpoint()
-                if signals.stop_requested():  # stage 1 stops at its next checkpoint
-                    signals.stop()
+                if stop_requested():  # stage 1 stops at its next checkpoint
+                    raise_pending()
 
     # ------------------------------------------------------------------ steps of the loop
     def _due_batches(self) -> list[TensorDictBase]:

@@ -2,20 +2,25 @@
 
 A controller drives a group of cars with the same 9 actions as the agent, deciding for all of
 its cars at once (one batched call per step), so that a controller backed by a neural network
-(a later issue: cars driven by earlier checkpoints) runs one forward pass per step.
+(cars driven by earlier checkpoints) runs one forward pass per step.
+
+Each kind of controller is made by a factory in :data:`CONTROLLERS`. This package makes the
+``constant`` cars; a kind that needs more than the simulator is registered by the package that
+has it (:func:`register_controller`): ``learned`` cars drive with the networks of past runs and
+come with :mod:`memrl.checkpoint` (registered when it is imported, as every memrl command
+does), so that the env never imports upwards.
 """
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from memrl.envs.config import OpponentConfig
+from memrl.envs.config import EnvConfigError, OpponentConfig
 from memrl.envs.scene import controller_mix
 from memrl.envs.vehicles import IDLE, CurvatureVehicle
 
@@ -63,23 +68,25 @@ class Opponents:
         return len(learned[0].networks) if learned else 1  # type: ignore[attr-defined]
 
 
+ControllerFactory = Callable[[OpponentConfig], CarController]
+"""Makes the controller of one kind of car from the env's ``opponent`` config."""
+
+CONTROLLERS: dict[str, ControllerFactory] = {"constant": lambda cfg: ConstantSpeedController()}
+"""The factory of each kind of controller (:func:`memrl.envs.scene.controller_mix` names the
+kinds of an episode); ``learned``: registered by :mod:`memrl.checkpoint.opponents`."""
+
+
+def register_controller(kind: str, factory: ControllerFactory) -> None:
+    """Make the cars of ``kind`` with ``factory`` (called by the package that has them)."""
+    CONTROLLERS[kind] = factory
+
+
 def make_opponents(cfg: OpponentConfig) -> Opponents:
     """Controllers for ``constant``, ``learned`` or ``mixed`` traffic (loads the pool once)."""
     kinds, _ = controller_mix(cfg)
-    controllers: list[CarController] = []
-    for kind in kinds:
-        if kind == "constant":
-            controllers.append(ConstantSpeedController())
-        else:
-            controllers.append(_entry_point(LEARNED_CONTROLLER)(cfg.pool, epsilon=cfg.epsilon))
-    return Opponents(controllers)
-
-
-LEARNED_CONTROLLER = "memrl.modules.opponents:LearnedCarController"
-"""Entry point of the learned cars' controller (as gymnasium registers envs): it lives with the
-networks in ``memrl.modules``, which build on this package, so it is found by name, not imported."""
-
-
-def _entry_point(name: str) -> Any:
-    module, attr = name.split(":")
-    return getattr(importlib.import_module(module), attr)
+    missing = [kind for kind in kinds if kind not in CONTROLLERS]
+    if missing:
+        raise EnvConfigError(f"env config 'opponent.type': {cfg.type} traffic needs the controller of "
+                             f"{' and '.join(missing)} cars, which memrl.checkpoint registers: "
+                             "import memrl.checkpoint first")
+    return Opponents([CONTROLLERS[kind](cfg) for kind in kinds])

@@ -17,6 +17,7 @@ import torch
 
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.evaluation.protocol import EpisodeRecord
+from memrl.stop import Interrupted
 
 StepHook = Callable[[LaneChangeEnv, np.ndarray, int | None, EpisodeRecord | None], None]
 """Called after each reset (action None) and each step (the action taken) with the env and
@@ -71,8 +72,8 @@ class JobResult:
     records: list[EpisodeRecord] = field(default_factory=list)
     stopped_early: bool = False
     """A human pressed Esc: the episode under way was dropped, the finished ones kept."""
-    interrupted: int | None = None
-    """Exit status of the signal that stopped it (130 SIGINT, 143 SIGTERM); None: none did."""
+    interrupted: Interrupted | None = None
+    """The signal that stopped it (SIGINT, SIGTERM); None: none did."""
 
 
 @contextmanager

@@ -34,7 +34,7 @@ from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord, closing_or_none
 from memrl.modules.policy import FrameStack, StopRecording
 from memrl.progress import progress_bar
-from memrl.stop import Terminated, exit_status_of
+from memrl.stop import Interrupted, interrupted_by
 from memrl.workers import stopped_with_parent, worker_start
 
 __all__ = ["Actor", "FrameStack", "Job", "JobResult", "StepHook", "run_job", "run_jobs", "split",
@@ -91,9 +91,9 @@ def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHoo
     except StopRecording:
         log.info("evaluation stopped after %d finished episodes", len(result.records))
         result.stopped_early = True
-    except (KeyboardInterrupt, Terminated) as err:  # Ctrl-C, SIGTERM: keep what finished
+    except (KeyboardInterrupt, Interrupted) as err:  # Ctrl-C, SIGTERM: keep what finished
         log.info("evaluation interrupted after %d finished episodes", len(result.records))
-        result.stopped_early, result.interrupted = True, exit_status_of(err)
+        result.stopped_early, result.interrupted = True, interrupted_by(err)
     finally:
         for env in envs:
             env.close()

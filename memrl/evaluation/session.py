@@ -15,16 +15,7 @@ from memrl.evaluation.policies import Candidate
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.results import EvalResult, write_result
 from memrl.evaluation.runner import Job, run_jobs
-from memrl.signals import Interrupted
-from memrl.stop import (
-    SIGINT_EXIT,
-    SIGTERM_EXIT,
-    SignalGuard,
-    Stopped,
-    Terminated,
-    exit_status_of,
-    output_overrides,
-)
+from memrl.stop import Interrupted, SignalGuard, Stopped, how_stopped, interrupted_by, output_overrides
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +41,8 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
         Stopped: a person ended it (Esc) or a signal came before every episode finished:
             what finished is written (``stopped_early``) and the line names the command that
             goes on with it; before any finished episode, nothing is written.
+        Interrupted: a signal before any episode finished (nothing written; the command's
+            line says so and names the command again).
     """
     where = resume.path if resume is not None else (cand.out_dir or out_dir)
     if where is None:
@@ -64,26 +57,22 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
     if hasattr(cand.actor, "plan"):
         cand.actor.plan(total, done=len(done))
     start = time.perf_counter()
-    interrupted = None
     try:
         with SignalGuard():
             res = run_jobs(cand.actor, [j for j in jobs if j.episodes], workers=workers, batch=batch,
                            progress=progress, desc=f"evaluate {cand.name}")
-    except (KeyboardInterrupt, Terminated) as err:  # between jobs, or in worker processes
-        interrupted = exit_status_of(err)
-        res = JobResult(stopped_early=True)
+    except (KeyboardInterrupt, Interrupted) as err:  # between jobs, or in worker processes
+        res = JobResult(stopped_early=True, interrupted=interrupted_by(err))
     finally:
         cand.actor.close()
-    interrupted = interrupted or res.interrupted
+    stop = res.interrupted
     wall = time.perf_counter() - start + (resume.wall_s if resume is not None else 0.0)
     records = sorted([*(resume.records() if resume is not None else []), *res.records],
                      key=lambda r: (protocol.initial_lanes.index(r.initial_lane), r.episode))
-    how = {SIGINT_EXIT: "interrupted (SIGINT)", SIGTERM_EXIT: "interrupted (SIGTERM)"}.get(
-        interrupted, "stopped")  # type: ignore[arg-type]
-    if not res.records and interrupted:  # a signal: the command's one line, with the command again
-        raise Interrupted(int(interrupted) - 128)
+    if not res.records and stop is not None:  # a signal: the command's one line, with the command again
+        raise stop
     if not res.records and res.stopped_early:  # Esc in a person's window
-        raise Stopped(f"{how} before any episode finished; nothing saved", interrupted or SIGINT_EXIT)
+        raise Stopped("stopped before any episode finished; nothing saved")
     if not records:
         raise RuntimeError(f"evaluate {cand.name}: no episode finished")
     stopped = res.stopped_early or len(records) < total
@@ -96,8 +85,8 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
              result.unit, len(res.records), steps, wall, steps / max(wall, 1e-9), where)
     if stopped:
         print(score_line(result), f"-> {result.path}")
-        raise Stopped(f"{how} after {len(records)} of {total} episodes, saved in {where}; go on with: "
-                      f"{resume_command(cand, where)}", interrupted or SIGINT_EXIT)
+        raise Stopped.by(f"{how_stopped(stop)} after {len(records)} of {total} episodes, saved in {where}; "
+                         f"go on with: {resume_command(cand, where)}", stop)
     return result
 
 

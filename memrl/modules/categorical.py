@@ -5,7 +5,7 @@ HL-Gauss targets.
 
 Acting, evaluation, deployment and the opponent pool use the expected value
 ``Q(s, a) = sum_i p_i(s, a) z_i`` (the network's forward); the TD term reads the declared
-``"logits"`` output through the learner's :class:`memrl.dqn.values.QFunctions`. TorchRL's
+``"logits"`` output through the learner's :class:`memrl.values.QFunctions`. TorchRL's
 ``DistributionalDQNLoss`` is not used: its actor's ``action_value`` must be the
 log-distribution (acting would see no Q-values), it projects on the CPU, and it writes no TD
 error for prioritized replay.

@@ -132,7 +132,7 @@ class TDTerm:
     name: str = "td"
 
     def __call__(self, batch: TensorDictBase, q: Any) -> torch.Tensor:
-        """The term on ``batch``; ``q``: the learner's :class:`memrl.dqn.values.QFunctions`."""
+        """The term on ``batch``; ``q``: the learner's :class:`memrl.values.QFunctions`."""
         if self.advantage == 0:
             return self.weight * 0.5 * q.double_dqn_loss()
         # DQNLoss has no advantage-learning target: its reward is lowered by the correction

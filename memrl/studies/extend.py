@@ -52,7 +52,7 @@ def sources(grid: Sequence[Cell], earlier: Path) -> list[tuple[Cell, Path]]:
     """The cells without a folder and the earlier study's finished run of each (cells it lacks
     start from scratch); refuses (one line, nothing written) an earlier run not finished, made
     under another config, or already at this budget."""
-    from memrl.dqn import checkpoint as ckpt
+    from memrl.checkpoint import resume as ckpt
     from memrl.train import budget_reached
 
     if not (earlier / "runs").is_dir():

@@ -26,7 +26,7 @@ from omegaconf import DictConfig
 
 import memrl
 from memrl.modes import by_label
-from memrl.signals import Interrupted
+from memrl.stop import Interrupted
 from memrl.workers import stopped_with_parent, worker_start
 
 log = logging.getLogger(__name__)

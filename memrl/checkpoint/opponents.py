@@ -4,6 +4,10 @@ Each learned car sees its own 84x84 BEV stack (rendered centred on it, its own t
 highlighted, itself in the agent's shade) and acts with the 9 actions through one of the pool's
 Q-networks. All learned cars of a step are served together: one batched forward pass per pool
 network that some car uses, on that network's cars only.
+
+Importing this module registers the ``learned`` kind of car controller with the env
+(:func:`memrl.envs.controllers.register_controller`): the env makes learned cars from its
+``opponent`` config without importing this package.
 """
 
 from __future__ import annotations
@@ -19,7 +23,9 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from memrl.envs.controllers import CarController
+from memrl.checkpoint.networks import load_qnet, resolve
+from memrl.envs.config import LaneChangeConfig, OpponentConfig, validate_env_config
+from memrl.envs.controllers import CarController, register_controller
 from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
 from memrl.errors import UserError
@@ -34,8 +40,6 @@ class OpponentPoolError(UserError, ValueError):
 
 def expand_pool(pool: Sequence[str]) -> list[Path]:
     """Checkpoint files of the pool entries (run folders, ``final.pt`` files or globs)."""
-    from memrl.checkpoint import resolve
-
     files: list[Path] = []
     for entry in pool:
         matches = sorted(glob.glob(str(entry))) if glob.has_magic(str(entry)) else [str(entry)]
@@ -54,8 +58,6 @@ def seen_view(env: Any) -> dict[str, Any] | None:
     stride. Keys an older run's config lacks take the env class's defaults, which draw what
     the versions before those keys drew; None for no config (a network saved by hand with
     ``save_qnet(path, net, {})``: its frames are unknown)."""
-    from memrl.envs.config import LaneChangeConfig, validate_env_config
-
     if not isinstance(env, LaneChangeConfig):
         values = OmegaConf.to_container(env, resolve=True) if isinstance(env, DictConfig) else dict(env or {})
         if not values:
@@ -73,8 +75,6 @@ def check_pool_views(trained: Sequence[tuple[Path, dict[str, Any] | None]], env:
         trained: (checkpoint file, :func:`seen_view` of the env it was trained in) per agent.
         env: the env config the learned cars drive in.
     """
-    from memrl.envs.config import LaneChangeConfig
-
     ours = seen_view(env or LaneChangeConfig())  # an empty config is the env class's defaults
     assert ours is not None
     for file, theirs in trained:
@@ -88,8 +88,6 @@ def check_pool_views(trained: Sequence[tuple[Path, dict[str, Any] | None]], env:
 
 def pool_views(pool: Sequence[str]) -> list[tuple[Path, dict[str, Any] | None]]:
     """(checkpoint file, :func:`seen_view` of its training env) of every pool entry."""
-    from memrl.checkpoint import load_qnet
-
     return [(file, seen_view(load_qnet(file)[1])) for file in expand_pool(pool)]
 
 
@@ -104,8 +102,6 @@ class LearnedCarController(CarController):
     kind = "learned"
 
     def __init__(self, pool: Sequence[str | torch.nn.Module], epsilon: float = 0.0) -> None:
-        from memrl.checkpoint import load_qnet
-
         nets: list[torch.nn.Module] = []
         self.trained_on: list[tuple[Path, dict[str, Any] | None]] = []
         """(file, :func:`seen_view` of its training env) of each agent loaded from a file."""
@@ -190,3 +186,11 @@ class LearnedCarController(CarController):
             explore = rng.random(len(cars)) < self.epsilon
             actions = np.where(explore, rng.integers(N_ACTIONS, size=len(cars)), actions)
         return actions.astype(np.int64)
+
+
+def learned_cars(cfg: OpponentConfig) -> LearnedCarController:
+    """The env's controller of ``learned`` cars: its ``opponent.pool`` and ``epsilon``."""
+    return LearnedCarController(cfg.pool, epsilon=cfg.epsilon)
+
+
+register_controller("learned", learned_cars)

@@ -1,4 +1,9 @@
-"""Trained agents as policies: load a run's Q-network and act greedily (or epsilon-greedily)."""
+"""Q-network files: a run's ``final.pt`` and mode B's ``checkpoints/stage1.pt``, written and read.
+
+The weights and their checksum go through :mod:`memrl.checkpoint.weights`; the network is built
+from the architecture the file stores (:mod:`memrl.modules.qnet`), and a file whose weights do
+not fit it is refused by name (:class:`~memrl.checkpoint.errors.CheckpointError`).
+"""
 
 from __future__ import annotations
 
@@ -6,18 +11,14 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from memrl.checkpoint.errors import CheckpointError
+from memrl.checkpoint.weights import load_weights, save_weights
 from memrl.data.demos import hashed_env_config
-from memrl.dqn.checkpoint import CheckpointError
-from memrl.envs.lane_change import LaneChangeEnv
-from memrl.envs.vehicles import N_ACTIONS
 from memrl.errors import load_run_config
-from memrl.modules.policy import DrivingPolicy, GreedyPolicy
-from memrl.modules.qnet import TABLE1, arch_of, build_qnet, input_frames
-from memrl.weights import load_weights, save_weights
+from memrl.modules.qnet import TABLE1, arch_of, build_qnet
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ def resolve(path: str | Path) -> Path:
 def save_qnet(path: str | Path, net: torch.nn.Module, env_cfg: dict[str, Any],
               extra: dict[str, Any] | None = None) -> Path:
     """Write a network in the ``final.pt`` format (``qnet`` weights, ``network`` architecture,
-    ``env`` config, extras), with its checksum (:func:`memrl.weights.save_weights`)."""
+    ``env`` config, extras), with its checksum (:func:`memrl.checkpoint.weights.save_weights`)."""
     weights = {k: v.cpu() for k, v in net.state_dict().items()}  # loads on any device
     return save_weights(path, {"qnet": weights, "network": arch_of(net), "env": env_cfg, **(extra or {})})
 
@@ -177,38 +178,6 @@ def load_qnet(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     return qnet_from(file, arch, weights), state.get("env", {})
 
 
-class GreedyQPolicy(DrivingPolicy):
-    """Acts with argmax Q on the stacked pixels (epsilon-greedy when ``epsilon > 0``).
-
-    ``policy.act(obs)`` takes a gym observation of ``gym.make("memrl/LaneChange-v0",
-    config={"frame_stack": 4})`` directly; ``policy.act(env, pixels)`` is the
-    :class:`DrivingPolicy` form that memrl's own runners use.
-    """
-
-    def __init__(self, net: torch.nn.Module, epsilon: float = 0.0, seed: int = 0) -> None:
-        self.net, self.epsilon = net, float(epsilon)
-        self.greedy = GreedyPolicy(net)  # the one greedy forward of evaluation and training drives
-        self.rng = np.random.default_rng(seed)
-
-    @torch.no_grad()
-    def act(self, env: LaneChangeEnv | np.ndarray, pixels: np.ndarray | None = None) -> int:
-        obs = np.asarray(env if pixels is None else pixels)
-        frames = input_frames(self.net)
-        if obs.dtype != np.uint8 or obs.shape[-3:] != (frames, 84, 84):
-            raise ValueError(f"the policy takes uint8 observations of shape ({frames}, 84, 84), got "
-                             f"{obs.dtype} {tuple(obs.shape)}: make the env with config={{'frame_stack': "
-                             f"{frames}, 'frame_stride': <the run's env.frame_stride>}}")
-        if self.epsilon > 0 and self.rng.random() < self.epsilon:
-            return int(self.rng.integers(N_ACTIONS))
-        return int(self.greedy.act_batch(torch.from_numpy(np.ascontiguousarray(obs))[None])[0])
-
-
-def load_policy(path: str, epsilon: float = 0.0) -> DrivingPolicy:
-    """A :class:`GreedyQPolicy` from a run folder or ``final.pt`` (used by deploy and evaluate)."""
-    net, _ = load_qnet(path)
-    return GreedyQPolicy(net, epsilon)
-
-
 def check_stage1(file: Path) -> dict[str, Any]:
     """Refuse a ``stage1.pt`` that is missing, truncated, altered (its checksum) or not a
     stage-1 record, by name; its content when sound."""
@@ -218,34 +187,3 @@ def check_stage1(file: Path) -> dict[str, Any]:
     if "loss_module" not in state:
         raise CheckpointError(f"{file}: not a stage-1 record (no 'loss_module' weights)")
     return state
-
-
-def recorded_config(run: Path) -> tuple[dict[str, Any] | None, Path | None]:
-    """What a run recorded of its config besides ``config.yaml``, and where: ``mode``,
-    ``seed`` and ``variant`` from its newest complete checkpoint (manifest-checked), else the
-    mode and seed of the summary in ``checkpoints/final.pt`` (or ``summary.json``); ``env``:
-    the resolved env config ``final.pt`` stores. (None, None) when it recorded neither."""
-    import json
-
-    from memrl.dqn import checkpoint as ckpt
-
-    final = run / "checkpoints" / "final.pt"
-    state = load_weights(final, "Q-network weights") if final.is_file() else {}
-    env = state.get("env") or {}
-    try:
-        last: Path | None = ckpt.find(run)
-    except CheckpointError:  # no checkpoint kept (a copied run): the final network's records
-        last = None
-    if last is not None:
-        stored = ckpt.load_state(last)["config"]
-        return {"mode": stored.get("mode") or {}, "seed": stored.get("seed"),
-                "variant": stored.get("variant"), "env": env}, last / "state.pt"
-    summary, source = state.get("summary"), final
-    if not isinstance(summary, dict) and (run / "summary.json").is_file():
-        try:
-            summary, source = json.loads((run / "summary.json").read_text()), run / "summary.json"
-        except ValueError:  # garbled: not a record
-            summary = None
-    if not isinstance(summary, dict) or "mode" not in summary or "seed" not in summary:
-        return None, None
-    return {"mode": {"name": summary["mode"]}, "seed": summary["seed"], "env": env}, source

@@ -4,8 +4,9 @@ A stage lists its terms (:mod:`memrl.modes`), its value head's TD term among the
 network declares the term that trains it, ``td_term``: eq. (1)'s :class:`TDTerm` for Table I,
 :mod:`memrl.modules.categorical` for C51 and HL-Gauss); the learner adds them up
 (:meth:`memrl.dqn.learner.Learner.loss`). A new term is one class with a ``__call__`` that
-takes the batch and the learner's :class:`~memrl.dqn.values.QFunctions`, and one line in the
-stage that uses it (``docs/extending.md``).
+takes the batch and the learner's :class:`~memrl.values.QFunctions`, and one line in the
+stage that uses it (``docs/extending.md``). The terms sit beside the modes that name them, below the
+trainer that sums them (``tests/test_import_cycles.py``: the layer order).
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ from typing import Any, Protocol
 import torch
 from tensordict import TensorDictBase
 
-from memrl.dqn.values import QFunctions
 from memrl.modules.qnet import TDTerm, network_class, target_action_gap
+from memrl.values import QFunctions
 
 __all__ = ["LossTerm", "MarginTerm", "QFunctions", "TDTerm", "margin_terms", "network_class",
            "target_action_gap", "td_term"]
@@ -31,7 +32,7 @@ class LossTerm(Protocol):
     def __call__(self, batch: TensorDictBase, q: QFunctions) -> torch.Tensor | None:
         """The term's weighted value on ``batch`` (differentiable); None where it does not
         apply to this batch (adds nothing, not even a zero). ``q``: the learner's Q-functions
-        on this batch (:class:`memrl.dqn.values.QFunctions`: online and target outputs, the
+        on this batch (:class:`memrl.values.QFunctions`: online and target outputs, the
         batch's online Q as an earlier term left it, the TD errors for priorities)."""
 
 

@@ -7,7 +7,7 @@ tensors' dtype, shape and bytes, and every other value). :func:`load_weights` re
 and refuses a file whose content changed (one flipped byte in a tensor or in a record),
 naming the file. A file written before checksums existed loads with one warning line.
 (A resume checkpoint, ``checkpoints/last/``, is checked by its manifest instead:
-:mod:`memrl.dqn.checkpoint`.)
+:mod:`memrl.checkpoint.resume`.)
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from memrl.dqn.checkpoint import CheckpointError
+from memrl.checkpoint.errors import CheckpointError
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """What a loss term sees of the learner's Q-functions on one batch: :class:`QFunctions`.
 
-A term (:mod:`memrl.dqn.losses`, or a value head's own TD term beside its network, e.g.
+A term (:mod:`memrl.losses`, or a value head's own TD term beside its network, e.g.
 :mod:`memrl.modules.categorical`) never reaches into TorchRL's ``DQNLoss``: it asks this facade
 for the online or target outputs of any pixels (a dict of the network's declared outputs,
 ``"q"`` always), the double-DQN action, TorchRL's double-DQN loss, and it reads or sets two

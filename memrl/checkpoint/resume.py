@@ -1,4 +1,5 @@
-"""Checkpoints: atomic save of everything a run needs to continue exactly, and safe loading."""
+"""Resume checkpoints (``checkpoints/last/``): atomic save of everything a run needs to continue
+exactly, their manifests, and safe loading; what a run recorded of its config."""
 
 from __future__ import annotations
 
@@ -15,8 +16,9 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from memrl.checkpoint.errors import CheckpointError
+from memrl.checkpoint.weights import load_weights
 from memrl.data.recipe import LEGACY_RECIPE
-from memrl.errors import UserError
 from memrl.modes import used
 
 RUNTIME_KEYS = ("resume", "overwrite", "paths", "logger", "progress", "total_frames", "total_episodes",
@@ -66,10 +68,6 @@ def with_legacy_values(config: dict[str, Any], legacy: dict[str, Any] = LEGACY_V
 
 MANIFEST = "MANIFEST.json"
 """Size and CRC-32 of every file of a checkpoint, written with it and checked before loading."""
-
-
-class CheckpointError(UserError, ValueError):
-    """A checkpoint is missing, corrupt or from another config."""
 
 
 def rng_state() -> dict[str, Any]:
@@ -141,7 +139,7 @@ def check_manifest(ckpt_dir: Path) -> None:
     if not file.is_file():
         raise CheckpointError(f"{file}: missing, so the checkpoint cannot be verified; cannot resume "
                               "from it (a checkpoint from before manifests: python -c \"from "
-                              "memrl.dqn.checkpoint import write_manifest as w; "
+                              "memrl.checkpoint.resume import write_manifest as w; "
                               f"w(__import__('pathlib').Path('{ckpt_dir}'))\" if its files are good)")
     try:
         files = json.loads(file.read_text())["files"]
@@ -210,3 +208,30 @@ def load_state(ckpt: Path, cfg: DictConfig | None = None) -> dict[str, Any]:
             raise CheckpointError(f"{ckpt}: checkpoint made under another config (resume with "
                                   "the checkpoint's values as overrides):\n  " + "\n  ".join(diff))
     return state
+
+
+def recorded_config(run: Path) -> tuple[dict[str, Any] | None, Path | None]:
+    """What a run recorded of its config besides ``config.yaml``, and where: ``mode``,
+    ``seed`` and ``variant`` from its newest complete checkpoint (manifest-checked), else the
+    mode and seed of the summary in ``checkpoints/final.pt`` (or ``summary.json``); ``env``:
+    the resolved env config ``final.pt`` stores. (None, None) when it recorded neither."""
+    final = run / "checkpoints" / "final.pt"
+    state = load_weights(final, "Q-network weights") if final.is_file() else {}
+    env = state.get("env") or {}
+    try:
+        last: Path | None = find(run)
+    except CheckpointError:  # no checkpoint kept (a copied run): the final network's records
+        last = None
+    if last is not None:
+        stored = load_state(last)["config"]
+        return {"mode": stored.get("mode") or {}, "seed": stored.get("seed"),
+                "variant": stored.get("variant"), "env": env}, last / "state.pt"
+    summary, source = state.get("summary"), final
+    if not isinstance(summary, dict) and (run / "summary.json").is_file():
+        try:
+            summary, source = json.loads((run / "summary.json").read_text()), run / "summary.json"
+        except ValueError:  # garbled: not a record
+            summary = None
+    if not isinstance(summary, dict) or "mode" not in summary or "seed" not in summary:
+        return None, None
+    return {"mode": {"name": summary["mode"]}, "seed": summary["seed"], "env": env}, source
