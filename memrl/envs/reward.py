@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from memrl.envs.config import LaneChangeConfig, RewardConfig
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class AgentState:
     """What the components read of the agent, each a scalar or ``[N]`` (numpy or torch)."""
 
