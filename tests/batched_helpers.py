@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from memrl.envs.batched import REWARD_NAMES, BatchedLaneChange, StepOut
+from memrl.envs.batched import BatchedLaneChange, StepOut
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.envs.reward import REWARD_NAMES
 
 STATE_ATOL = 1e-9
 """[m, rad, m/s, rad/m]: both integrate the same float64 formulas; sin/cos of numpy and torch
@@ -28,6 +29,8 @@ class Tally:
     resets: int = 0
     max_state_diff: float = 0.0
     actions: list[np.ndarray] = field(default_factory=list)
+    components: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REWARD_NAMES, 0))
+    """Per reward component: the env steps at which it was 1 (in both engines)."""
 
 
 def car_states(env: LaneChangeEnv) -> np.ndarray:
@@ -86,6 +89,8 @@ def compare(config: dict, seeds: list[int], steps: int,
                 assert diff <= state_atol, f"env {i}: states differ by {diff}"
                 tally.max_state_diff = max(tally.max_state_diff, diff)
             tally.steps += 1
+            for name, value in info["rewards"].items():
+                tally.components[name] += int(value)
             if terminated:
                 lo, hi = env._lateral_extent(env.vehicle)
                 tally.wall_hits += int(env._hits_wall(lo, hi))
@@ -126,9 +131,12 @@ def _assert_new_episodes(engine: BatchedLaneChange, refs: list[LaneChangeEnv], d
 
 def _assert_outcome(out: StepOut, i: int, reward: float, terminated: bool, truncated: bool,
                     info: dict, reward_atol: float = 0.0) -> None:
-    """Env ``i``'s reward, components and flags of the engine's step are the reference's."""
+    """Env ``i``'s reward, components and flags of the engine's step are the reference's; both
+    engines name the components as :data:`memrl.envs.reward.REWARD_NAMES` does, in its order."""
     assert abs(out.reward[i].item() - reward) <= reward_atol
-    assert out.components[i].tolist() == [bool(info["rewards"][k]) for k in REWARD_NAMES]
+    assert tuple(info["rewards"]) == REWARD_NAMES and tuple(out.components) == REWARD_NAMES
+    got = {name: value[i].item() for name, value in out.components.items()}
+    assert got == info["rewards"], f"env {i}: reward components {got} != the reference's {info['rewards']}"
     assert bool(out.terminated[i]) == terminated and bool(out.truncated[i]) == truncated
     assert bool(out.collided[i]) == bool(info["collided"])
     assert bool(out.on_target_lane[i]) == bool(info["on_target_lane"])

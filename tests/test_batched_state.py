@@ -27,9 +27,9 @@ def _run(engine: BatchedLaneChange, rng: np.random.Generator, steps: int) -> lis
         done = torch.nonzero(out.terminated | out.truncated).flatten()
         if len(done):
             engine.reset(done)
-        keys = ("reward", "components", "terminated", "truncated", "collided", "on_target_lane",
-                "reached_target")
+        keys = ("reward", "terminated", "truncated", "collided", "on_target_lane", "reached_target")
         record = {k: getattr(out, k).cpu().numpy() for k in keys}
+        record.update({f"components/{k}": v.cpu().numpy() for k, v in out.components.items()})
         record["obs"] = engine.observation().cpu().numpy()
         record["state"] = engine.state.cpu().numpy()
         record["present"] = engine.present.cpu().numpy()

@@ -34,13 +34,13 @@ from memrl.envs.config import (
 from memrl.envs.controllers import Opponents, make_opponents
 from memrl.envs.crash import NO_CRASH, classify_rows
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
+from memrl.envs.reward import AgentState, components, weighted_sum
 from memrl.envs.risk import risk, shaping_reward
 from memrl.envs.scene import max_cars, sample_scene
 from memrl.envs.stride import history_length
 from memrl.envs.vehicles import ACTIONS, IDLE, N_ACTIONS
 
 X, Y, HEADING, SPEED, CURVATURE = range(5)
-REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
 NUMPY_MAX_VIEWS = 2048
 """On CPU, calls with at most this many views are drawn by the rasterizer's numpy path."""
 SCENE_PARTS = ("state", "present", "target_lane", "is_learned", "car_target", "policy", "reached")
@@ -91,8 +91,9 @@ class StepOut:
 
     reward: torch.Tensor
     """float64 reward (Table II components weighted by the config)."""
-    components: torch.Tensor
-    """``[N, 5]`` bool reward components, in the order of :data:`REWARD_NAMES`."""
+    components: dict[str, torch.Tensor]
+    """float64 reward components (0.0 / 1.0) by name, in the order of
+    :data:`memrl.envs.reward.REWARD_NAMES` (the reference env's ``info['rewards']``)."""
     terminated: torch.Tensor
     truncated: torch.Tensor
     collided: torch.Tensor
@@ -200,7 +201,6 @@ class BatchedLaneChange:
         # on CPU the step's many small operations run on numpy views of the same memory
         self._on_cpu = dev.type == "cpu"
         self._arrays = {k: v.numpy() for k, v in self._tensors.items()} if self._on_cpu else self._tensors
-        self._weights = [float(getattr(cfg.reward, k)) for k in REWARD_NAMES]
         self._diag = float(np.sqrt(cfg.vehicle_length ** 2 + cfg.vehicle_width ** 2))
 
     # ---------------------------------------------------------------------------- reset
@@ -313,18 +313,19 @@ class BatchedLaneChange:
         self._classify_crashes(b["crashed"] & ~before)
         self._head = (self._head + 1) % self.history
         comps, on_target = self._components(b)
-        reward = physics.weighted_sum(comps, self._weights)
+        reward = weighted_sum(comps, cfg.reward)
         if risk_before is not None:
             reward = reward + shaping_reward(risk_before, self._risk(b), b["crashed"], cfg.shaping.weight,
                                              cfg.shaping.gamma)
-        crashed, reached = b["crashed"], b["reached"]
-        parts = (reward, comps, crashed, b["steps"] >= cfg.duration, crashed, on_target, reached)
-        out = StepOut(*(torch.from_numpy(x.copy()) if self._on_cpu else x.clone() for x in parts))
-        out.crash_kind, out.closing_speed = self.crash_kind.clone(), self.closing_speed.clone()
+        crashed, truncated, new = b["crashed"], b["steps"] >= cfg.duration, self._new_tensor
+        out = StepOut(reward=new(reward), components=self._as_tensors(comps), terminated=new(crashed),
+                      truncated=new(truncated), collided=new(crashed), on_target_lane=new(on_target),
+                      reached_target=new(b["reached"]), crash_kind=self.crash_kind.clone(),
+                      closing_speed=self.closing_speed.clone())
         views = self._agent_views(b["state"], b["present"], b["target_lane"], b["is_learned"])
         done: list[int] = []
         if auto_reset:
-            ended = parts[2] | parts[3]  # terminated | truncated
+            ended = crashed | truncated  # terminated | truncated
             done = (np.flatnonzero(ended) if self._on_cpu else torch.nonzero(ended).flatten()).tolist()
         if not done:
             self._render_into(self._head, views)
@@ -374,9 +375,9 @@ class BatchedLaneChange:
 
     def info(self) -> dict[str, torch.Tensor]:
         """The reference env's ``info`` of the current state, per env: speed [m/s], curvature
-        [rad/m], lane, target_lane, rewards (``[N, 5]`` components), collided, on_target_lane,
-        reached_target, crash_kind, closing_speed (of the episode's crash, as set at its step;
-        not part of :meth:`state_dict`)."""
+        [rad/m], lane, target_lane, rewards (the components by name, as ``StepOut.components``),
+        collided, on_target_lane, reached_target, crash_kind, closing_speed (of the episode's
+        crash, as set at its step; not part of :meth:`state_dict`)."""
         comps, on_target = self._components(self._tensors)
         agent, cfg = self.state[:, 0], self.cfg
         return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE],
@@ -385,11 +386,24 @@ class BatchedLaneChange:
                 "on_target_lane": on_target, "reached_target": self.reached.clone(),
                 "crash_kind": self.crash_kind.clone(), "closing_speed": self.closing_speed.clone()}
 
-    def _components(self, b: dict[str, Any]) -> tuple[Any, Any]:
-        """Reward components and on-target flags of the arrays ``b`` (numpy or tensors)."""
-        cfg = self.cfg
-        return physics.components(b["state"][:, 0], b["crashed"], b["target_lane"], cfg.lane_width,
-                                  cfg.lanes_count, cfg.lane_centre_tolerance, cfg.stopped_speed)
+    def _components(self, b: dict[str, Any]) -> tuple[dict[str, Any], Any]:
+        """The reward components of the arrays ``b`` (numpy or tensors) by name, as new float64
+        arrays (0.0 / 1.0, converted from :func:`memrl.envs.reward.components`' truth values),
+        and whether each agent is on its target lane."""
+        cfg, agent = self.cfg, b["state"][:, 0]
+        state = AgentState(crashed=b["crashed"], y=agent[:, Y], speed=agent[:, SPEED],
+                           lane=physics.lane(agent, cfg.lane_width, cfg.lanes_count),
+                           target_lane=b["target_lane"])
+        truth, f64 = components(state, cfg), physics.ops(agent).f64
+        return {name: f64(value) for name, value in truth.items()}, truth["target_lane"]
+
+    def _new_tensor(self, x: Any) -> torch.Tensor:
+        """A tensor copy of the step's array ``x`` (numpy on CPU, else a tensor)."""
+        return torch.from_numpy(x.copy()) if self._on_cpu else x.clone()
+
+    def _as_tensors(self, comps: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """Components of :meth:`_components` as tensors (numpy's without a copy: they are new)."""
+        return {name: torch.from_numpy(v) for name, v in comps.items()} if self._on_cpu else comps
 
     def observation(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
         """The stacked frames ``[N, frame_stack, H, W]`` uint8, oldest first (a new tensor), of

@@ -1,6 +1,6 @@
-"""The batched engine's kinematics, wall test and reward components, on numpy arrays (the
-engine's CPU path: many small operations, where numpy's calls cost a fraction of torch's) or
-torch tensors (any device), with the same formulas either way.
+"""The batched engine's kinematics, wall test and lane, on numpy arrays (the engine's CPU
+path: many small operations, where numpy's calls cost a fraction of torch's) or torch tensors
+(any device), with the same formulas either way (the reward's: :mod:`memrl.envs.reward`).
 
 Cars are rows ``[..., (x, y, heading, speed, curvature)]``, float64.
 """
@@ -73,25 +73,3 @@ def lane(agent: Any, lane_width: float, lanes_count: int) -> Any:
     """Lane holding each agent's centre (clipped to the road), as float64."""
     x_ = ops(agent)
     return x_.clip(x_.floor(agent[..., Y] / lane_width + 0.5), 0, lanes_count - 1)
-
-
-def components(agent: Any, crashed: Any, target: Any, lane_width: float, lanes_count: int,
-               centre_tolerance: float, stopped_speed: float) -> tuple[Any, Any]:
-    """Reward components ``[N, 5]`` (collision, lane centre, stopped, target lane, other lane)
-    and whether each agent is on its target lane."""
-    x_ = ops(agent)
-    on = lane(agent, lane_width, lanes_count)
-    offset = agent[..., Y] - on * lane_width
-    on_target = x_.i64(on) == target
-    comps = x_.stack([crashed, abs(offset) <= centre_tolerance, agent[..., SPEED] <= stopped_speed,
-                      on_target, ~on_target], axis=-1)
-    return comps, on_target
-
-
-def weighted_sum(comps: Any, weights: list[float]) -> Any:
-    """Reward: the components weighted, summed in the reference's order."""
-    x_ = ops(comps)
-    reward = x_.f64(comps[..., 0]) * 0.0
-    for i, weight in enumerate(weights):
-        reward = reward + weight * x_.f64(comps[..., i])
-    return reward

@@ -20,12 +20,11 @@ from memrl.envs.config import LaneChangeConfig, env_config_dict, max_car_speed, 
 from memrl.envs.controllers import CarController, Opponents, make_opponents
 from memrl.envs.crash import NO_CRASH, classify
 from memrl.envs.render import BEVRenderer, View, car_corners
+from memrl.envs.reward import AgentState, components, weighted_sum
 from memrl.envs.risk import risk, shaping_reward
 from memrl.envs.scene import sample_scene
 from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle, validate_action
-
-REWARD_NAMES = ("collision", "lane_centre", "stopped", "target_lane", "non_target_lane")
 
 
 def _merge(base: dict, delta: dict) -> None:
@@ -82,12 +81,12 @@ class BEVObservation(ObservationType):
 class LaneChangeEnv(AbstractEnv):
     """Change to the target lane among other cars without hitting them or the road edges.
 
-    Reward per step: the sum of the named components of :meth:`_rewards` (each 0 or 1) weighted
-    by ``config['reward'][name]`` (Table II). Terminated on collision; truncated after
-    ``duration`` steps. ``info`` holds the components (``rewards``), ``collided``,
-    ``on_target_lane`` and ``reached_target`` (all four corners of the agent inside the
-    target lane at some step of the episode so far), and of a crash its kind and closing
-    speed (``crash_kind``: code of :data:`memrl.envs.crash.CRASH_KINDS`, 0 without a crash;
+    Reward per step: the sum of the named components of :meth:`_rewards` (each 0 or 1;
+    :mod:`memrl.envs.reward`) weighted by ``config['reward'][name]`` (Table II). Terminated on
+    collision; truncated after ``duration`` steps. ``info`` holds the components (``rewards``),
+    ``collided``, ``on_target_lane`` and ``reached_target`` (all four corners of the agent
+    inside the target lane at some step of the episode so far), and of a crash its kind and
+    closing speed (``crash_kind``: code of :data:`memrl.envs.crash.CRASH_KINDS`, 0 without a crash;
     ``closing_speed`` [m/s], 0 without one (not NaN: gymnasium's checker compares infos);
     :func:`memrl.envs.crash.classify`).
     """
@@ -309,21 +308,15 @@ class LaneChangeEnv(AbstractEnv):
         return self._components
 
     def _reward_components(self) -> dict[str, float]:
-        cfg, car = self.cfg, self.vehicle
-        lane = self.current_lane()
-        offset = car.position[1] - lane * cfg.lane_width
-        on_target = lane == self.target_lane
-        return {
-            "collision": float(car.crashed),
-            "lane_centre": float(abs(offset) <= cfg.lane_centre_tolerance),
-            "stopped": float(car.speed <= cfg.stopped_speed),
-            "target_lane": float(on_target),
-            "non_target_lane": float(not on_target),
-        }
+        """The components of :mod:`memrl.envs.reward` of the current state, as 0.0 / 1.0."""
+        car = self.vehicle
+        state = AgentState(crashed=car.crashed, y=car.position[1], speed=car.speed,
+                           lane=self.current_lane(), target_lane=self.target_lane)
+        return {name: float(value) for name, value in components(state, self.cfg).items()}
 
     def _reward(self, action: Any = None) -> float:
-        weights, shaping = self.cfg.reward, self.cfg.shaping
-        reward = float(sum(getattr(weights, k) * v for k, v in self._rewards(action).items()))
+        shaping = self.cfg.shaping
+        reward = float(weighted_sum(self._rewards(action), self.cfg.reward))
         if shaping.weight > 0:
             reward += float(shaping_reward(self._risk_before, self.state_risk(), self.vehicle.crashed,
                                            shaping.weight, shaping.gamma))

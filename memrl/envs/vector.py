@@ -17,7 +17,7 @@ from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from memrl.envs.batched import REWARD_NAMES, BatchedLaneChange
+from memrl.envs.batched import BatchedLaneChange
 
 
 class LaneChangeVectorEnv(VectorEnv):
@@ -96,9 +96,8 @@ class LaneChangeVectorEnv(VectorEnv):
         """The single env's info keys, batched (with gymnasium's ``_key`` masks)."""
         state = self.engine.info()
         info: dict[str, Any] = {k: v.cpu().numpy() for k, v in state.items() if k != "rewards"}
-        comps = state["rewards"].cpu().numpy().astype(np.float64)
-        info["rewards"] = {name: comps[:, i] for i, name in enumerate(REWARD_NAMES)}
+        rewards = {name: value.cpu().numpy() for name, value in state["rewards"].items()}
         every = np.ones(self.num_envs, dtype=bool)
-        info["rewards"].update({f"_{name}": every for name in REWARD_NAMES})
+        info["rewards"] = {**rewards, **{f"_{name}": every for name in rewards}}
         info.update({f"_{k}": every for k in list(info) if not k.startswith("_")})
         return info
