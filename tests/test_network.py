@@ -205,9 +205,38 @@ def test_a_trained_network_loads_back_through_evaluate_deploy_and_the_pool(
     assert type(trained) is cls
     stored = torch.load(run / "checkpoints" / "final.pt", weights_only=False)["network"]
     assert stored == trained.arch and stored["_target_"] == f"memrl.modules.qnet.{cls.__name__}"
+    assert_loads_back_everywhere(compose_cfg, run, trained, cls)
+    # a resume into a fresh trainer rebuilds the same network from the run's config
+    from memrl.dqn.loop import Trainer
+
+    resumed = Trainer(cfg, tmp_path / "probe", demos)
+    resumed.resume(run)
+    assert type(resumed.learner.qnet) is cls and equal_weights(resumed.learner.qnet, trained)
+    if name == "dueling":  # mode B: stage1.pt stores the architecture too
+        s1 = torch.load(run / "checkpoints" / "stage1.pt", weights_only=False)
+        assert s1["network"] == trained.arch
+        at_switch = Learner(cfg.agent, network=cfg.network)
+        at_switch.loss_module.load_state_dict(s1["loss_module"])
+        ref = build_qnet(cfg.network).eval()
+        ref.load_state_dict(at_switch.qnet.state_dict())
+        x = fixed_input()
+        assert torch.equal(load_stage1_qnet(run)(x), ref(x))
+        # a Table I run may not resume it, nor start stage 2 from its stage 1
+        table1 = compose_cfg("train", tiny("B"))
+        with pytest.raises(ckpt.CheckpointError, match="network._target_"):
+            ckpt.load_state(ckpt.find(run), table1)
+        from memrl.schemas import check_train
+
+        with pytest.raises(ValueError, match=r"config 'mode.stage1.init': .*stage1.pt: its network "
+                                             r"DuelingQNetwork\(\) is not this run's QNetwork\(\)"):
+            check_train(compose_cfg("train", tiny("B") + [f"mode.stage1.init={run}"]))
+
+
+def assert_loads_back_everywhere(compose_cfg, run, trained: nn.Module, cls: type) -> None:
+    """``run``'s ``final.pt`` is ``trained`` (a ``cls``) for evaluate, deploy and the opponent
+    pool: the same class and weights, the same Q-values and greedy action on fixed input."""
     x = fixed_input()
     want = trained(x)
-
     # evaluate: the policy source that `memrl.evaluate policy=checkpoint` instantiates
     ecfg = compose_cfg("evaluate", [f"policy.run={run}"])
     [cand] = instantiate(ecfg.policy).candidates()
@@ -222,29 +251,6 @@ def test_a_trained_network_loads_back_through_evaluate_deploy_and_the_pool(
     index = torch.zeros(len(x), dtype=torch.long)
     pool = LearnedCarController([str(run / "checkpoints" / "final.pt")])
     assert torch.equal(pool.q_values(index, x), LearnedCarController([trained]).q_values(index, x))
-    # a resume into a fresh trainer rebuilds the same network from the run's config
-    from memrl.dqn.loop import Trainer
-
-    resumed = Trainer(cfg, tmp_path / "probe", demos)
-    resumed.resume(run)
-    assert type(resumed.learner.qnet) is cls and equal_weights(resumed.learner.qnet, trained)
-    if name == "dueling":  # mode B: stage1.pt stores the architecture too
-        s1 = torch.load(run / "checkpoints" / "stage1.pt", weights_only=False)
-        assert s1["network"] == trained.arch
-        at_switch = Learner(cfg.agent, network=cfg.network)
-        at_switch.loss_module.load_state_dict(s1["loss_module"])
-        ref = build_qnet(cfg.network).eval()
-        ref.load_state_dict(at_switch.qnet.state_dict())
-        assert torch.equal(load_stage1_qnet(run)(x), ref(x))
-        # a Table I run may not resume it, nor start stage 2 from its stage 1
-        table1 = compose_cfg("train", tiny("B"))
-        with pytest.raises(ckpt.CheckpointError, match="network._target_"):
-            ckpt.load_state(ckpt.find(run), table1)
-        from memrl.schemas import check_train
-
-        with pytest.raises(ValueError, match=r"config 'mode.stage1.init': .*stage1.pt: its network "
-                                             r"DuelingQNetwork\(\) is not this run's QNetwork\(\)"):
-            check_train(compose_cfg("train", tiny("B") + [f"mode.stage1.init={run}"]))
 
 
 def test_a_checkpoint_saved_before_the_network_key_resumes_as_table1(compose_cfg, tmp_path):

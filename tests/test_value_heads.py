@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import pytest
 import torch
-from hydra.utils import instantiate
 
 from memrl.dqn.config import AgentConfig
 from memrl.dqn.learner import Learner
@@ -22,7 +21,7 @@ from memrl.modules.hlgauss import HLGaussQNetwork, HLGaussTerm, gauss_histogram
 from memrl.modules.qnet import QNetwork, build_qnet, network_for_task
 from tests.helpers import assert_kill_and_resume_is_exact, tiny_mode
 from tests.test_learner import batch
-from tests.test_network import equal_weights, fixed_input
+from tests.test_network import assert_loads_back_everywhere, fixed_input
 
 C51 = {"_target_": "memrl.modules.categorical.CategoricalQNetwork", "atoms": 11, "v_min": -20.0,
        "v_max": 20.0}
@@ -184,9 +183,6 @@ HEADS = {
 def test_each_head_trains_resumes_exactly_and_loads_back_everywhere(compose_cfg, tmp_path, demos,
                                                                    monkeypatch, name):
     from memrl.checkpoint import load_stage1_qnet
-    from memrl.checkpoint.opponents import LearnedCarController
-    from memrl.deploy import deploy_config, make_policy
-    from memrl.modules.policy import GreedyPolicy
 
     overrides, cls = HEADS[name]
     cfg, full = assert_kill_and_resume_is_exact(compose_cfg, tmp_path, demos, monkeypatch,
@@ -198,19 +194,8 @@ def test_each_head_trains_resumes_exactly_and_loads_back_everywhere(compose_cfg,
     trained.load_state_dict(stored["qnet"])
     assert type(trained) is cls and trained.arch == stored["network"]
     assert stored["network"]["v_min"] == return_bounds(cfg.env, float(cfg.agent.gamma))[0]
-    x = fixed_input()
-    want = trained(x)
-    assert want.shape == (5, 9)
-    ecfg = compose_cfg("evaluate", [f"policy.run={run}"])
-    [cand] = instantiate(ecfg.policy).candidates()
-    assert type(cand.actor.net) is cls and equal_weights(cand.actor.net, trained)
-    assert torch.equal(cand.actor.policy.q_values(x), GreedyPolicy(trained).q_values(x))
-    dcfg = compose_cfg("deploy", ["deploy.policy=checkpoint", f"deploy.checkpoint={run}"])
-    policy = make_policy(deploy_config(dcfg.deploy))
-    assert type(policy.net) is cls and torch.equal(policy.net(x), want)
-    index = torch.zeros(len(x), dtype=torch.long)
-    pool = LearnedCarController([str(run / "checkpoints" / "final.pt")])
-    assert torch.equal(pool.q_values(index, x), LearnedCarController([trained]).q_values(index, x))
+    assert trained(fixed_input()).shape == (5, 9)
+    assert_loads_back_everywhere(compose_cfg, run, trained, cls)
     if name == "hlgauss":
         assert type(load_stage1_qnet(run)) is cls
 

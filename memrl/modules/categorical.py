@@ -113,10 +113,15 @@ class CategoricalQNetwork(QNetwork):
 
     @classmethod
     def td_term(cls, agent: Any) -> C51Term:
-        if float(agent.advantage_learning) != 0:
-            raise config_error("agent.advantage_learning", f"{cls.__name__} has no advantage-learning "
-                               "target: needs 0")
+        refuse_advantage_learning(cls, agent)
         return C51Term(gamma=float(agent.gamma))
+
+
+def refuse_advantage_learning(cls: type, agent: Any) -> None:
+    """A categorical head has no advantage-learning target: ``agent.advantage_learning`` must be 0."""
+    if float(agent.advantage_learning) != 0:
+        raise config_error("agent.advantage_learning", f"{cls.__name__} has no advantage-learning "
+                           "target: needs 0")
 
 
 def bootstrap(batch: TensorDictBase, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -140,6 +145,15 @@ def project(support: torch.Tensor, values: torch.Tensor, probs: torch.Tensor) ->
     return (near * probs[:, None, :]).sum(-1)
 
 
+def taken(batch: TensorDictBase, q: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """Of each item's own action: the online log-distribution ``[B, K]`` (with gradients) and
+    the expected value ``[B]`` (detached), from the batch's online outputs (``q``: QFunctions)."""
+    out = q.batch_outputs()
+    a = batch.get("action").reshape(-1).long()
+    rows = torch.arange(a.shape[0], device=a.device)
+    return torch.log_softmax(out["logits"], -1)[rows, a], out["q"][rows, a].detach()
+
+
 @dataclass(frozen=True)
 class C51Term:
     """C51's TD term: the cross-entropy between the projected double-DQN target distribution
@@ -152,14 +166,10 @@ class C51Term:
     name: str = "c51"
 
     def __call__(self, batch: TensorDictBase, q: Any) -> torch.Tensor:
-        net = q.qnet
-        out = q.batch_outputs()
-        a = batch.get("action").reshape(-1).long()
-        rows = torch.arange(a.shape[0], device=a.device)
-        log_p = torch.log_softmax(out["logits"], -1)[rows, a]  # [B, K]
+        log_p, q_sa = taken(batch, q)
         with torch.no_grad():
             target = self.target(batch, q)
-            q.td_error = ((target * net.support).sum(-1) - out["q"][rows, a].detach()).pow(2)[:, None]
+            q.td_error = ((target * q.qnet.support).sum(-1) - q_sa).pow(2)[:, None]
         return self.weight * -(target * log_p).sum(-1).mean()
 
     @torch.no_grad()

@@ -15,9 +15,14 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from memrl.errors import config_error
 from memrl.fields import spec
-from memrl.modules.categorical import CategoricalConfig, CategoricalQNetwork, bootstrap
+from memrl.modules.categorical import (
+    CategoricalConfig,
+    CategoricalQNetwork,
+    bootstrap,
+    refuse_advantage_learning,
+    taken,
+)
 
 
 @dataclass
@@ -47,9 +52,7 @@ class HLGaussQNetwork(CategoricalQNetwork):
 
     @classmethod
     def td_term(cls, agent: Any) -> HLGaussTerm:
-        if float(agent.advantage_learning) != 0:
-            raise config_error("agent.advantage_learning", f"{cls.__name__} has no advantage-learning "
-                               "target: needs 0")
+        refuse_advantage_learning(cls, agent)
         return HLGaussTerm(gamma=float(agent.gamma))
 
 
@@ -77,15 +80,12 @@ class HLGaussTerm:
 
     def __call__(self, batch: TensorDictBase, q: Any) -> torch.Tensor:
         net = q.qnet
-        out = q.batch_outputs()
-        a = batch.get("action").reshape(-1).long()
-        rows = torch.arange(a.shape[0], device=a.device)
-        log_p = torch.log_softmax(out["logits"], -1)[rows, a]
+        log_p, q_sa = taken(batch, q)
         with torch.no_grad():
             y = self.scalar_target(batch, q)
             width = (net.v_max - net.v_min) / net.atoms
             target = gauss_histogram(y, net.v_min, net.v_max, net.atoms, net.sigma * width)
-            q.td_error = (y - out["q"][rows, a].detach()).pow(2)[:, None]
+            q.td_error = (y - q_sa).pow(2)[:, None]
         return self.weight * -(target * log_p).sum(-1).mean()
 
     @torch.no_grad()
