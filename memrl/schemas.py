@@ -200,7 +200,10 @@ def check_resume(cfg: DictConfig) -> None:
     if (run / "config.yaml").is_file():
         load_run_config(run / "config.yaml")
     state = ckpt.load_state(ckpt.find(run), cfg)
-    if cfg.mode.name == "B" and state["counters"]["stage"] != "B1":  # stage 2 starts from stage1.pt
+    from memrl.modes import mode_of
+
+    offline = [s.name for s in mode_of(cfg).stages if s.settings is not None]
+    if offline and state["counters"]["stage"] not in offline:  # past its offline stage: from stage1.pt
         from memrl.checkpoint import check_stage1
 
         check_stage1(run / "checkpoints" / "stage1.pt")

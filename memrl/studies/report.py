@@ -56,6 +56,13 @@ class ReportInputs:
     """``study.variants``: name -> its train overrides ({}: none)."""
 
 
+def offline_settings(cfg: Any) -> str | None:
+    """The ``mode`` key of a run config's offline-stage settings (mode B: ``stage1``); None for
+    a mode without an offline stage, or one not declared here."""
+    spec = MODES.get(str(cfg.mode.get("name")))
+    return next((st.settings for st in spec.stages if st.settings is not None), None) if spec else None
+
+
 def _pretrains(mode: object) -> bool:
     """Whether runs of mode name ``mode`` have an offline stage (their stage-1 weights)."""
     return str(mode) in MODES and MODES[str(mode)].pretrains
@@ -244,7 +251,8 @@ def stage1_end(run: Path) -> dict[str, Any] | None:
         return None
     agreements, parts, drives = s1["agreements"], s1.get("parts") or [], s1.get("drives") or []
     try:
-        episodes = int(OmegaConf.load(run / "config.yaml").mode.stage1.drive_episodes)
+        cfg = OmegaConf.load(run / "config.yaml")
+        episodes = int(cfg.mode[offline_settings(cfg)].drive_episodes)
     except Exception:  # noqa: BLE001 - a run without its config (moved, older) shows counts alone
         episodes = 0
     kept = int(s1.get("best_updates") or 0) or int(s1["updates"])
@@ -362,7 +370,8 @@ def cost_section(finished: Sequence[Cell]) -> list[str]:
         if not s:
             continue
         wall = train_wall(s)
-        shared = c.cfg is not None and OmegaConf.select(c.cfg, "mode.stage1.init") is not None
+        settings = offline_settings(c.cfg) if c.cfg is not None else None
+        shared = settings is not None and OmegaConf.select(c.cfg, f"mode.{settings}.init") is not None
         s1 = int((s.get("stage1") or {}).get("updates", 0)) if _pretrains(s.get("mode")) and not shared else 0
         dash = "\u2014"
         rates = [dash, dash] if not wall else [f"{int(s[k]) / wall:,.1f}" for k in ("updates", "frames")]
