@@ -17,7 +17,7 @@ from typing import Any, Protocol
 import torch
 from tensordict import TensorDictBase
 
-from memrl.modules.qnet import TDTerm, network_class, target_action_gap
+from memrl.modules.qnet import QNetwork, TDTerm, network_class, target_action_gap
 from memrl.values import QFunctions
 
 __all__ = ["LossTerm", "MarginTerm", "QFunctions", "TDTerm", "margin_terms", "network_class",
@@ -40,9 +40,7 @@ def td_term(agent: Any, network: Any = None) -> LossTerm:
     """The TD term of the value head ``network`` (a ``network`` node, a class or a built
     network; None: Table I), as the ``agent`` config sets it: the head's own
     ``td_term(agent)``; eq. (1)'s for a network that declares none."""
-    cls = network_class(network)
-    make = getattr(cls, "td_term", None)
-    return make(agent) if make is not None else TDTerm(advantage=float(agent.advantage_learning))
+    return getattr(network_class(network), "td_term", QNetwork.td_term)(agent)
 
 
 @dataclass(frozen=True)

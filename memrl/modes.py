@@ -261,7 +261,7 @@ EXPLAINERS.append(explain_key_error)
 
 
 # ------------------------------------------------------------------ Default, A and B (the paper)
-def _margin(weight: float, margin: float) -> tuple[Any, ...]:
+def _td_and_margin(weight: float, margin: float) -> tuple[Any, ...]:
     """The head's TD term, then DQfD's margin term where its weight is positive."""
     from memrl.losses import margin_terms
 
@@ -504,7 +504,7 @@ register_mode(ModeSpec("default", "Default", (StageSpec("default"),), schema=Def
 register_mode(ModeSpec(
     "A", "A",
     (StageSpec("A", demo_share=lambda cfg: cfg.mode.demo_fraction,
-               terms=lambda cfg: _margin(cfg.mode.margin_weight, cfg.mode.stage1.margin)),),
+               terms=lambda cfg: _td_and_margin(cfg.mode.margin_weight, cfg.mode.stage1.margin)),),
     schema=ModeAConfig, check=_check_a))
 """Mode A: prior knowledge permanently holds ``demo_fraction`` of the buffer, stratified
 batches, DQfD's margin loss on their demos (weight ``margin_weight``, 0: the paper's A)."""
@@ -512,12 +512,12 @@ batches, DQfD's margin loss on their demos (weight ``margin_weight``, 0: the pap
 register_mode(ModeSpec(
     "B", "B",
     (StageSpec("B1", demo_share=lambda cfg: 1.0, settings="stage1",
-               terms=lambda cfg: _margin(cfg.mode.stage1.margin_weight, cfg.mode.stage1.margin),
+               terms=lambda cfg: _td_and_margin(cfg.mode.stage1.margin_weight, cfg.mode.stage1.margin),
                lr=lambda cfg: cfg.mode.stage1.lr),
      StageSpec("B2", demo_share=lambda cfg: cfg.mode.stage2.demo_fraction, fresh_optimizer=True,
                lr=lambda cfg: cfg.mode.stage2.lr, n_step=lambda cfg: cfg.mode.stage2.n_step,
                updates_per_round=lambda cfg: cfg.mode.stage2.updates_per_round,
-               terms=lambda cfg: _margin(cfg.mode.stage2.margin_weight, cfg.mode.stage1.margin),
+               terms=lambda cfg: _td_and_margin(cfg.mode.stage2.margin_weight, cfg.mode.stage1.margin),
                exploration=lambda cfg: (cfg.mode.stage2.eps_start, cfg.mode.stage2.eps_end,
                                         cfg.mode.stage2.eps_decay_frames))),
     schema=ModeBConfig, check=_check_b))
@@ -529,7 +529,7 @@ register_mode(ModeSpec(
 register_mode(ModeSpec(
     "R", "R",
     (StageSpec("R", demo_share=lambda cfg: cfg.mode.demo_fraction,
-               terms=lambda cfg: _margin(cfg.mode.margin_weight, cfg.mode.margin)),),
+               terms=lambda cfg: _td_and_margin(cfg.mode.margin_weight, cfg.mode.margin)),),
     schema=ModeRConfig, presets={"smoke": SMOKE_DEMOS}))
 """Mode R: RLPD's symmetric sampling, prior knowledge at half of every batch from the first
 update, no offline stage; the margin term optional (``margin_weight``, off). The worked example

@@ -208,6 +208,7 @@ def test_each_head_trains_resumes_exactly_and_loads_back_everywhere(compose_cfg,
     (["network=hlgauss", "network.sigma=0"], "config 'network.sigma': must be > 0, got 0"),
     (["network=hlgauss", "network.sigma=-1"], "config 'network.sigma': must be > 0, got -1"),
     (["network=c51", "network.atoms=many"], "config 'network.atoms': "),
+    (["network=c51", "+network.atom=3"], "config 'network.atom': CategoricalConfig has no such key"),
     (["network=c51", "agent.advantage_learning=0.5"], "config 'agent.advantage_learning': "
                                                       "CategoricalQNetwork has no advantage-learning"),
 ])
@@ -219,6 +220,27 @@ def test_bad_head_values_are_refused_at_start_naming_the_key(compose_cfg, overri
         check_train(compose_cfg("train", overrides))
     line = one_line(info.value)
     assert line.startswith(message) and "\n" not in line, line
+
+
+@pytest.mark.parametrize(("name", "cls"), [("c51", CategoricalQNetwork), ("hlgauss", HLGaussQNetwork)])
+def test_a_head_yaml_lists_its_classs_keys_at_their_schema_defaults(name, cls):
+    """The yaml lists the keys that ``network_keys`` lacks (so they take overrides without
+    ``+``), each at its schema default: the defaults stay the schema's, nothing to drift."""
+    import dataclasses
+
+    import yaml
+    from omegaconf import OmegaConf
+
+    from memrl.config_reference import CONF_DIR
+    from memrl.modules.network_config import NetworkConfig
+
+    raw = yaml.safe_load((CONF_DIR / "network" / f"{name}.yaml").read_text())
+    assert raw.pop("defaults") == ["network_keys", "_self_"]
+    assert raw.pop("_target_") == f"{cls.__module__}.{cls.__qualname__}"
+    base = {f.name for f in dataclasses.fields(NetworkConfig)}
+    own = {k: v for k, v in OmegaConf.to_container(OmegaConf.structured(cls.config_schema)).items()
+           if k not in base}
+    assert raw == own
 
 
 def test_the_configuration_reference_lists_every_networks_keys():

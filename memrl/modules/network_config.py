@@ -79,7 +79,7 @@ def check_typed(schema: type, node: Any, key: str) -> None:
     """Every key of ``node`` is a field of ``schema`` and of its type (OmegaConf's structured
     merge), else one line naming the key."""
     from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+    from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
     plain = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
     try:
@@ -88,7 +88,7 @@ def check_typed(schema: type, node: Any, key: str) -> None:
         name = str(getattr(err, "full_key", "") or getattr(err, "key", "") or "")
         what = str(err).splitlines()[0]
         known = ", ".join(f.name for f in dataclasses.fields(schema) if f.name != "_target_")
-        if "not in" in what or "not found" in what.lower():
+        if isinstance(err, ConfigKeyError):  # a key the schema lacks
             raise config_error(f"{key}.{name}", f"{schema.__name__} has no such key (keys: {known})") \
                 from None
         raise config_error(f"{key}.{name}", what) from None
