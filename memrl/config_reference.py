@@ -67,12 +67,12 @@ def field_docs(cls: type) -> dict[str, str]:
 
 @cache
 def env_check_ranges() -> dict[str, str]:
-    """Env key -> the ranges its check states: the messages of the ``_check(cond, "<key>",
-    "<message>")`` calls in ``memrl/envs/config.py`` (checks whose key is a constant string),
-    after the rule of the key alone (``RULES``)."""
+    """Env key -> the ranges its checks across keys state: the messages of the
+    ``_check(cond, "<key>", "<message>")`` calls in ``memrl/envs/config.py`` (checks whose key
+    is a constant string), stated beside the range on its field."""
     from memrl.envs import config as env_config
 
-    out: dict[str, list[str]] = {key: [valid] for key, (_, valid) in env_config.RULES.items()}
+    out: dict[str, list[str]] = {}
     for node in ast.walk(ast.parse(inspect.getsource(env_config))):
         if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
                 and node.func.id == "_check" and len(node.args) >= 3):
@@ -173,8 +173,8 @@ def _rows(command: str, node: DictConfig, prefix: str, rows: list[tuple[str, ...
             type_ = str(f.type).replace("typing.", "")
             rng = _range(f.metadata)
             doc = docs.get(str(key), "")
-            if not rng and name.startswith("env."):
-                rng = env_check_ranges().get(name.removeprefix("env."), "")
+            if name.startswith("env.") and (across := env_check_ranges().get(name.removeprefix("env."))):
+                rng = f"{rng}; {across}" if rng else across
         else:
             value = child._value()
             type_ = "list" if isinstance(child, ListConfig) else \
@@ -255,8 +255,8 @@ def _mode_sections(seen_docs: dict[str, str]) -> list[str]:
         select = " ".join(spec.overrides)
         parts.append(f"### train {select}\n\nThe `mode` node of mode {spec.name} "
                      f"(`{spec.schema.__name__}`, memrl/modes.py): "
-                     f"its keys and no other; a preset's values of them are in "
-                     f"`conf/mode_preset/{spec.name}_<preset>.yaml`.\n")
+                     f"its keys and no other; a preset's values of them are declared with it "
+                     f"(`ModeSpec.presets`: {', '.join(spec.presets) or 'none'}).\n")
         rows = [r for r in command_rows("train", tuple(spec.overrides)) if r[0].startswith("mode.")]
         parts += _table(rows, seen_docs)
     return parts

@@ -5,6 +5,7 @@ modules, so any schema module can use it."""
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from collections.abc import Mapping
 from dataclasses import field
@@ -92,8 +93,40 @@ def nested_schemas(schema: type) -> dict[str, type]:
     return out
 
 
+@cache
+def integral_fields(schema: type) -> frozenset[str]:
+    """Fields of ``schema`` typed ``int`` (or ``int | None``): a value there must be an int,
+    not a float or a bool, where the node was not typed by the schema (a plain dict)."""
+    try:
+        hints = get_type_hints(schema)
+    except Exception:  # an annotation that does not resolve: no such check
+        return frozenset()
+    return frozenset(name for name, typ in hints.items() if typ is int or typ == int | None)
+
+
+def _check_value(key: str, value: Any, meta: Mapping[str, Any], integral: bool, optional: bool) -> None:
+    """One value against its field's range (``integral``: its field is typed ``int``)."""
+    bare = {k: m for k, m in meta.items() if k != "nonempty"}
+    if isinstance(value, list):
+        if meta.get("nonempty") and not value:
+            raise config_error(key, "needs at least one value")
+        if any(not _element_ok(v, bare) for v in value):
+            raise config_error(key, f"every value must be {_valid(meta)}, got {value!r}")
+    elif integral and set(meta) & set(BOUNDS) and (isinstance(value, bool) or not isinstance(value, int)):
+        raise config_error(key, f"must be an int {_valid(meta)}, got {value!r}")
+    elif bare and not _element_ok(value, bare):
+        null = " or null" if optional else ""  # an optional key (``int | None``)
+        raise config_error(key, f"must be {_valid(meta)}{null}, got {value!r}")
+
+
 def check_fields(schema: type, node: Mapping[str, Any] | DictConfig, prefix: str = "") -> None:
-    """Check every field of ``schema`` that declares a range, and nested schemas' fields.
+    """Check every field of ``schema`` that declares a range, nested schemas' fields, then the
+    schema's own cross-key rule: the one way a value is checked.
+
+    A schema states its ranges on its fields (:func:`spec`) and its rules across keys in one
+    static method ``check(node, prefix)`` (keys that must fit together, or a choice another
+    key restricts), raising :func:`memrl.errors.config_error` naming the key; it runs after
+    every key's range has passed, nested schemas' rules before their parent's.
 
     Raises:
         ConfigError: ``config '<key>': must be <range>, got <value>``.
@@ -113,16 +146,9 @@ def check_fields(schema: type, node: Mapping[str, Any] | DictConfig, prefix: str
         if sub is not None and isinstance(value, Mapping):
             check_fields(sub, value, key + ".")  # type: ignore[arg-type]
             continue
-        if value is None:
-            continue
-        if isinstance(value, list):
-            if meta.get("nonempty") and not value:
-                raise config_error(key, "needs at least one value")
-            bad = [v for v in value if not _element_ok(v, {k: m for k, m in meta.items()
-                                                            if k != "nonempty"})]
-            if bad:
-                raise config_error(key, f"every value must be {_valid(meta)}, got {value!r}")
-        elif {k for k in meta if k != "nonempty"} and \
-                not _element_ok(value, {k: m for k, m in meta.items() if k != "nonempty"}):
-            null = " or null" if "None" in str(f.type) else ""  # an optional key (``int | None``)
-            raise config_error(key, f"must be {_valid(meta)}{null}, got {value!r}")
+        if value is not None:
+            _check_value(key, value, meta, integral=f.name in integral_fields(schema),
+                         optional="None" in str(f.type))
+    rule = inspect.getattr_static(schema, "check", None)  # a static method (a field may be named check)
+    if isinstance(rule, staticmethod):  # the rule reads keys as attributes or with .get()
+        rule.__func__(node if isinstance(node, DictConfig) else OmegaConf.create(dict(node)), prefix)

@@ -17,10 +17,10 @@ from typing import Any, Protocol
 import torch
 from tensordict import TensorDictBase
 
-from memrl.modules.qnet import QNetwork, TDTerm, network_class, target_action_gap
+from memrl.modules.qnet import TDTerm, head_td_term, target_action_gap
 from memrl.values import QFunctions
 
-__all__ = ["LossTerm", "MarginTerm", "QFunctions", "TDTerm", "margin_terms", "network_class",
+__all__ = ["LossTerm", "MarginTerm", "QFunctions", "TDTerm", "margin_terms",
            "target_action_gap", "td_term"]
 
 
@@ -39,8 +39,9 @@ class LossTerm(Protocol):
 def td_term(agent: Any, network: Any = None) -> LossTerm:
     """The TD term of the value head ``network`` (a ``network`` node, a class or a built
     network; None: Table I), as the ``agent`` config sets it: the head's own
-    ``td_term(agent)``; eq. (1)'s for a network that declares none."""
-    return getattr(network_class(network), "td_term", QNetwork.td_term)(agent)
+    ``td_term(agent)`` (or ``td_term_for(agent, node)``); eq. (1)'s for a network that
+    declares none (:func:`memrl.modules.qnet.head_td_term`)."""
+    return head_td_term(agent, network)
 
 
 @dataclass(frozen=True)

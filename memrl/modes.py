@@ -17,6 +17,7 @@ them branches on a mode or stage name. Importing this module does not import tor
 
 from __future__ import annotations
 
+import copy
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, is_dataclass, replace
@@ -27,8 +28,8 @@ from memrl.data.recipe import DemoRecipe
 from memrl.errors import EXPLAINERS, config_error
 from memrl.fields import SEED_MAX, spec
 
-Cfg = Any
-"""The composed ``train`` config (a DictConfig)."""
+Mode = Any
+"""A run's composed ``mode`` node (a DictConfig of its mode's schema)."""
 
 
 class HeadTD:
@@ -48,34 +49,41 @@ HEAD_TD = HeadTD()
 
 @dataclass(frozen=True)
 class StageSpec:
-    """One stage of a mode."""
+    """One stage of a mode. Each callable receives the run's ``mode`` node (its mode's schema,
+    :attr:`ModeSpec.schema`) and nothing else: what a stage reads is its mode's keys; None
+    where it returns one means "the ``agent`` node's value"."""
 
     name: str
     """Its tag in checkpoints, ``episodes.csv`` and ``updates.csv`` (unique over all modes)."""
-    demo_share: Callable[[Cfg], float] = lambda cfg: 0.0
-    """Share of the buffer (and of each stratified batch) the prior knowledge holds: 0 the
-    agent's data only; 1 prior knowledge only, which makes the stage offline."""
-    terms: Callable[[Cfg], tuple[Any, ...]] = lambda cfg: (HEAD_TD,)
+    demo_share: Callable[[Mode], float] = lambda m: 0.0
+    """Share of the buffer (and of each stratified batch) the prior knowledge holds in an
+    online stage (0: the agent's data only)."""
+    terms: Callable[[Mode], tuple[Any, ...]] = lambda m: (HEAD_TD,)
     """Its loss terms, summed in order (:mod:`memrl.losses`); :data:`HEAD_TD` stands for the
     value head's own TD term (a stage without it trains on its other terms alone)."""
-    exploration: Callable[[Cfg], tuple[float, float, int]] = \
-        lambda cfg: (cfg.agent.eps_start, cfg.agent.eps_end, cfg.agent.eps_decay_frames)
-    """Epsilon schedule (start, end, decay env steps) of an online stage."""
-    lr: Callable[[Cfg], float | None] = lambda cfg: None
+    exploration: Callable[[Mode], tuple[float, float, int] | None] = lambda m: None
+    """Epsilon schedule (start, end, decay env steps) of an online stage (None: ``agent``'s
+    ``eps_start``, ``eps_end``, ``eps_decay_frames``)."""
+    lr: Callable[[Mode], float | None] = lambda m: None
     """Its own Adam learning rate (None: the optimizer's, ``agent.lr`` at first)."""
-    n_step: Callable[[Cfg], int | None] = lambda cfg: None
+    n_step: Callable[[Mode], int | None] = lambda m: None
     """Steps summed per sampled transition in its buffer (None: ``agent.n_step``)."""
-    updates_per_round: Callable[[Cfg], int | None] = lambda cfg: None
+    updates_per_round: Callable[[Mode], int | None] = lambda m: None
     """Gradient updates per round of an online stage (None: ``agent.updates_per_round``)."""
     fresh_optimizer: bool = False
     """Starts a new Adam at ``agent.lr`` (the weights carry over; the target network is
     synced to them)."""
     settings: str | None = None
-    """Offline stage: the ``mode`` key of its stop rule's settings (:class:`Stage1Config`)."""
+    """Makes it an offline stage: it trains on prior knowledge alone (no env steps) until its
+    stop rule (:mod:`memrl.dqn.stage1`) stops it, with the settings in the ``mode`` key of
+    this name (:class:`Stage1Config`); its weights are then saved (``checkpoints/stage1.pt``,
+    :data:`memrl.checkpoint.networks.OFFLINE_WEIGHTS`) and the next stage starts from them.
+    None: an online stage, run until the run's budget."""
 
-    def offline(self, cfg: Cfg) -> bool:
-        """Trains on prior knowledge alone (no env steps)."""
-        return float(self.demo_share(cfg)) >= 1.0
+    @property
+    def offline(self) -> bool:
+        """Trains on prior knowledge alone, no env steps (it has stop-rule ``settings``)."""
+        return self.settings is not None
 
 
 @dataclass(frozen=True)
@@ -90,15 +98,20 @@ class ModeSpec:
     schema: type
     """Its ``mode`` node: a dataclass whose fields are its keys (``name`` defaults to its name),
     registered as ``mode_schema/<name>`` (:func:`memrl.configs.register_configs`); ``+mode=<name>``
-    selects it (``conf/mode/<name>.yaml``)."""
-    check: Callable[[Cfg], None] = lambda cfg: None
-    """Range checks of its keys (raise :func:`memrl.errors.config_error` naming the key)."""
+    selects it (``conf/mode/<name>.yaml``). Its values are checked as every schema's
+    (:func:`memrl.fields.check_fields`): the ranges on its fields, then its static
+    ``check(node, prefix)`` for rules across its keys."""
     overrides: tuple[str, ...] = field(default=())
     """Command-line overrides that select it (``+mode=A``); filled in by :func:`register_mode`."""
+    renamed: dict[str, str] = field(default_factory=dict)
+    """Keys its ``mode`` node had under another name in earlier versions: old dotted key -> its
+    key now (mode A: ``stage1.margin`` -> ``margin``); :meth:`used` reads an older run's value
+    under the new name, so it resumes and shares report rows with a new one."""
     presets: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Its values under each preset (``+experiment=<preset>``): preset name -> ``mode`` values,
-    registered as ``mode_preset/<name>_<preset>`` (:func:`memrl.configs.register_configs`), so
-    a mode needs no preset file of its own (``conf/mode_preset/`` holds A's and B's)."""
+    registered as ``mode_preset/<name>_<preset>`` (:func:`memrl.configs.register_configs`) and
+    merged last (``conf/train.yaml``), so a mode needs no preset file and ``+mode`` and
+    ``+experiment`` work in either order."""
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -129,8 +142,13 @@ class ModeSpec:
 
     @property
     def pretrains(self) -> bool:
-        """Has an offline stage whose weights are saved (``checkpoints/stage1.pt``)."""
-        return any(s.settings is not None for s in self.stages)
+        """Has an offline stage, whose weights are saved (``checkpoints/stage1.pt``)."""
+        return self.offline_stage is not None
+
+    @property
+    def offline_stage(self) -> StageSpec | None:
+        """Its offline stage (prior knowledge alone), if it has one."""
+        return next((s for s in self.stages if s.offline), None)
 
     def stage(self, name: str) -> StageSpec:
         """The stage called ``name`` (a checkpoint's ``counters.stage``)."""
@@ -152,13 +170,32 @@ class ModeSpec:
         is recorded from it), with its defaults filled in."""
         from memrl.data.recipe import recipe_values
 
-        out = _project(self.schema, mode)
+        out = _project(self.schema, _renamed(mode, self.renamed))
         if "example" in out:
             if out.get("demos_path") is None:
                 out["example"] = recipe_values(out["example"])
             else:
                 del out["example"]
         return out
+
+
+def _renamed(mode: dict[str, Any], renamed: dict[str, str]) -> dict[str, Any]:
+    """``mode`` with each old key's value under its new name (where the new one is absent)."""
+    out = copy.deepcopy(mode)
+    for old, new in renamed.items():
+        *parents, leaf = old.split(".")
+        node: Any = out
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or leaf not in node:
+            continue
+        value = node.pop(leaf)
+        *new_parents, new_leaf = new.split(".")
+        target = out
+        for part in new_parents:
+            target = target.setdefault(part, {})
+        target.setdefault(new_leaf, value)
+    return out
 
 
 @cache
@@ -273,51 +310,10 @@ def _need(ok: bool, key: str, message: str) -> None:
         raise config_error(key, message)
 
 
-def _check_a(cfg: Cfg) -> None:
-    m = cfg.mode
-    _need(0 < m.demo_fraction < 1, "mode.demo_fraction", f"must be in (0, 1), got {m.demo_fraction}")
-    _need(m.sampling in ("stratified", "proportional"), "mode.sampling",
-          f"expected stratified or proportional, got {m.sampling!r}")
-    _need(m.margin_weight >= 0, "mode.margin_weight", f"must be >= 0, got {m.margin_weight}")
-
-
-def check_stage1(s1: Any) -> None:
-    """The settings of an offline stage's stop rule (``mode.stage1``)."""
-    _need(s1.criterion in ("agreement", "plateau", "agreement_or_plateau", "behaviour", "max_updates"),
-          "mode.stage1.criterion", f"unknown criterion {s1.criterion!r}")
-    _need(s1.drive_episodes >= 0, "mode.stage1.drive_episodes", "must be >= 0")
-    _need(s1.criterion != "behaviour" or s1.drive_episodes >= 1, "mode.stage1.drive_episodes",
-          "criterion 'behaviour' needs drive episodes (>= 1)")
-    _need(0 < s1.drive_target <= 1, "mode.stage1.drive_target", "must be in (0, 1]")
-    _need(0 < s1.holdout_fraction < 1, "mode.stage1.holdout_fraction", "must be in (0, 1)")
-    _need(s1.max_updates >= 1, "mode.stage1.max_updates", f"must be >= 1, got {s1.max_updates}")
-    _need(s1.check_every >= 1, "mode.stage1.check_every", f"must be >= 1, got {s1.check_every}")
-    _need(s1.criterion == "max_updates" or s1.check_every <= s1.max_updates, "mode.stage1.check_every",
-          f"{s1.check_every} updates between checks is more than mode.stage1.max_updates "
-          f"({s1.max_updates}): stage 1 would stop before its first check")
-    _need(s1.criterion != "plateau" or (s1.plateau_checks + 1) * s1.check_every < s1.max_updates,
-          "mode.stage1.plateau_checks", f"a window of {s1.plateau_checks} checks needs "
-          f"{s1.plateau_checks + 1} checks of {s1.check_every} updates, not fewer than "
-          f"mode.stage1.max_updates ({s1.max_updates}): the plateau rule could never stop stage 1")
-    _need(s1.lr is None or s1.lr > 0, "mode.stage1.lr", f"must be > 0 or null, got {s1.lr}")
-    _need(s1.margin_weight >= 0, "mode.stage1.margin_weight", f"must be >= 0, got {s1.margin_weight}")
-
-
-def _check_b(cfg: Cfg) -> None:
-    m = cfg.mode
-    _need(m.sampling in ("stratified", "proportional"), "mode.sampling",
-          f"expected stratified or proportional, got {m.sampling!r}")
-    check_stage1(m.stage1)
-    s2 = m.stage2
-    _need(0 <= s2.eps_end <= s2.eps_start <= 1, "mode.stage2.eps_start",
-          "need 0 <= eps_end <= eps_start <= 1")
-    _need(0 <= s2.demo_fraction < 1, "mode.stage2.demo_fraction",
-          f"must be in [0, 1), got {s2.demo_fraction}")
-    _need(s2.margin_weight >= 0, "mode.stage2.margin_weight", f"must be >= 0, got {s2.margin_weight}")
-    _need(s2.lr is None or s2.lr > 0, "mode.stage2.lr", f"must be > 0 or null, got {s2.lr}")
-    _need(s2.n_step is None or s2.n_step >= 1, "mode.stage2.n_step", f"must be >= 1 or null, got {s2.n_step}")
-    _need(s2.updates_per_round is None or s2.updates_per_round >= 1, "mode.stage2.updates_per_round",
-          f"must be >= 1 or null, got {s2.updates_per_round}")
+SAMPLINGS = ("stratified", "proportional")
+"""How a batch splits between the prior knowledge and the agent's data (:mod:`memrl.data.buffers`)."""
+CRITERIA = ("agreement", "plateau", "agreement_or_plateau", "behaviour", "max_updates")
+"""The offline stage's stop rules (:mod:`memrl.dqn.stage1`)."""
 
 
 @dataclass
@@ -343,7 +339,7 @@ class Stage1Config:
     """Stop when the mean TD loss improved less than ``plateau_tol`` (relative) over this many checks."""
     plateau_tol: float = spec(0.02, ge=0, lt=1)
     """Relative loss improvement under which the loss counts as flat."""
-    criterion: str = "behaviour"
+    criterion: str = spec("behaviour", choices=CRITERIA)
     """agreement | plateau | agreement_or_plateau | behaviour | max_updates. ``behaviour``:
     stop when ``drive_target`` of the drive episodes survive and reach the target lane."""
     drive_episodes: int = spec(40, ge=0)
@@ -373,6 +369,19 @@ class Stage1Config:
     stage 2 starts from, training no stage 1 of its own: one pretraining shared by stage-2
     variants (exploration, budgets, ...). Its env config must equal this run's; the run's own
     ``checkpoints/stage1.pt`` is a copy. Null: train stage 1 here."""
+
+    @staticmethod
+    def check(s1: Any, prefix: str = "mode.stage1.") -> None:
+        """Rules across its keys: a stop rule that can stop it, checks it can make."""
+        _need(s1.criterion != "behaviour" or s1.drive_episodes >= 1, f"{prefix}drive_episodes",
+              "criterion 'behaviour' needs drive episodes (>= 1)")
+        _need(s1.criterion == "max_updates" or s1.check_every <= s1.max_updates, f"{prefix}check_every",
+              f"{s1.check_every} updates between checks is more than {prefix}max_updates "
+              f"({s1.max_updates}): stage 1 would stop before its first check")
+        _need(s1.criterion != "plateau" or (s1.plateau_checks + 1) * s1.check_every < s1.max_updates,
+              f"{prefix}plateau_checks", f"a window of {s1.plateau_checks} checks needs "
+              f"{s1.plateau_checks + 1} checks of {s1.check_every} updates, not fewer than "
+              f"{prefix}max_updates ({s1.max_updates}): the plateau rule could never stop stage 1")
 
 
 @dataclass
@@ -414,6 +423,12 @@ class Stage2Config:
     above its stage 1 on 1 of 3 seeds, at 3x the wall time (docs/results/issue30/screens.md,
     section 27), so it is not a default."""
 
+    @staticmethod
+    def check(s2: Any, prefix: str = "mode.stage2.") -> None:
+        """Rules across its keys: an epsilon that decays."""
+        _need(s2.eps_end <= s2.eps_start, f"{prefix}eps_start",
+              f"need eps_end <= eps_start, got {s2.eps_start} -> {s2.eps_end}")
+
 
 @dataclass
 class DefaultModeConfig:
@@ -437,15 +452,6 @@ class DemoKeys:
 
 
 @dataclass
-class MarginConfig:
-    """Mode A's ``stage1``: only the margin of its large-margin loss (mode B's stage 1 has the
-    same key)."""
-
-    margin: float = spec(0.8, ge=0)
-    """Margin of the large-margin loss [Q units]."""
-
-
-@dataclass
 class ModeAConfig(DemoKeys):
     """Mode A's ``mode`` node (``+mode=A``)."""
 
@@ -454,14 +460,15 @@ class ModeAConfig(DemoKeys):
     demo_fraction: float = spec(0.1, gt=0, lt=1)
     """Share of the buffer permanently held by prior knowledge."""
     margin_weight: float = spec(3.0, ge=0)
-    """Weight of the large-margin loss (``stage1.margin``) on the demo items of each batch, as
+    """Weight of the large-margin loss (``margin``) on the demo items of each batch, as
     DQfD (0: eq. (1) alone, the paper's A); mode B's is ``stage2.margin_weight``. At 20,000 env
     steps A's non-goal goal rose from 0.7 to 19.0 with it, higher on every seed
     (docs/results/issue20)."""
-    sampling: str = "stratified"
+    margin: float = spec(0.8, ge=0)
+    """Margin of the large-margin loss [Q units] (older runs: ``stage1.margin``, read as this)."""
+    sampling: str = spec("stratified", choices=SAMPLINGS)
     """Stratified (exactly round(demo_fraction x batch) demos per batch) or proportional
     (uniform over the union: the demo count per batch is binomial)."""
-    stage1: MarginConfig = field(default_factory=MarginConfig)
 
 
 @dataclass
@@ -470,7 +477,7 @@ class ModeBConfig(DemoKeys):
 
     name: str = "B"
     """default | A | B (``+mode=A|B``)."""
-    sampling: str = "stratified"
+    sampling: str = spec("stratified", choices=SAMPLINGS)
     """Stage 2's batches, where prior knowledge stays in its buffer: stratified (exactly
     round(stage2.demo_fraction x batch) demos per batch) or proportional (binomial count)."""
     stage1: Stage1Config = field(default_factory=Stage1Config)
@@ -486,7 +493,7 @@ class ModeRConfig(DemoKeys):
     demo_fraction: float = spec(0.5, gt=0, lt=1)
     """Share of every batch (and of the buffer) that the prior knowledge holds, from the first
     update on (RLPD: half)."""
-    sampling: str = spec("stratified", choices=("stratified", "proportional"))
+    sampling: str = spec("stratified", choices=SAMPLINGS)
     """Stratified (exactly round(demo_fraction x batch) demos per batch, RLPD's symmetric
     sampling) or proportional (binomial count)."""
     margin_weight: float = spec(0.0, ge=0)
@@ -498,29 +505,61 @@ class ModeRConfig(DemoKeys):
 SMOKE_DEMOS = {"example": {"episodes": 12}}
 """The smoke preset's prior knowledge: the default recipe, 12 episodes (about 1,000 transitions)."""
 
+PAPER_DEMOS = {"example": {"episodes": 10, "tail_steps": None, "action_noise": 0.0,
+                           "driver": {"merge_window": None, "speed_tolerance": None},
+                           "env": {"initial_lane": None, "vehicles_count": None}}}
+"""The paper preset's prior knowledge: whole, noiseless episodes of lane changes in the training
+env's own episodes (the paper records people's drives and gives no count; this is memrl's
+example before the manoeuvre-focused recipe)."""
+
+A_PRESETS = {
+    "paper": {**PAPER_DEMOS, "margin_weight": 0.0},  # eq. (1) alone on its batches, demos included
+    "smoke": SMOKE_DEMOS,
+}
+"""Mode A's values under ``+experiment=paper`` (eq. (1) alone on its stratified batches, the
+paper's demos) and ``+experiment=smoke``."""
+
+B_PRESETS = {
+    "paper": {**PAPER_DEMOS,
+              # eq. (1) alone in stage 1, one Adam rate (agent.lr) for both stages: the paper names no other
+              "stage1": {"margin_weight": 0.0, "lr": None},
+              # stage 2 exactly as Default: the same schedule from 1.0, no prior knowledge left in its buffer
+              "stage2": {"eps_start": 1.0, "eps_end": 0.05, "eps_decay_frames": 1_000_000,
+                         "demo_fraction": 0.0, "margin_weight": 0.0}},
+    "smoke": {**SMOKE_DEMOS,
+              # 3 of 4 greedy drives surviving and reaching stop stage 1 early
+              "stage1": {"max_updates": 200, "check_every": 50, "drive_episodes": 4, "drive_target": 0.75},
+              "stage2": {"eps_decay_frames": 1500}},
+    # stage 1 with its own faster Adam and a stronger large-margin loss, stopped once 75% of 40
+    # greedy non-goal drives survive and reach the target lane (else at 20,000 updates), stage 2
+    # from the weights that drove best
+    "imitation": {"stage1": {"lr": 0.001, "margin_weight": 3.0, "max_updates": 20000, "check_every": 1000,
+                             "criterion": "behaviour", "drive_episodes": 40, "drive_target": 0.75,
+                             "keep_best": True}},
+}
+"""Mode B's values under ``+experiment=paper|smoke|imitation``."""
+
 register_mode(ModeSpec("default", "Default", (StageSpec("default"),), schema=DefaultModeConfig))
 """Default: plain double DQN (eq. (1)), the agent's own data only."""
 
 register_mode(ModeSpec(
     "A", "A",
-    (StageSpec("A", demo_share=lambda cfg: cfg.mode.demo_fraction,
-               terms=lambda cfg: _td_and_margin(cfg.mode.margin_weight, cfg.mode.stage1.margin)),),
-    schema=ModeAConfig, check=_check_a))
+    (StageSpec("A", demo_share=lambda m: m.demo_fraction,
+               terms=lambda m: _td_and_margin(m.margin_weight, m.margin)),),
+    schema=ModeAConfig, presets=A_PRESETS, renamed={"stage1.margin": "margin"}))
 """Mode A: prior knowledge permanently holds ``demo_fraction`` of the buffer, stratified
 batches, DQfD's margin loss on their demos (weight ``margin_weight``, 0: the paper's A)."""
 
 register_mode(ModeSpec(
     "B", "B",
-    (StageSpec("B1", demo_share=lambda cfg: 1.0, settings="stage1",
-               terms=lambda cfg: _td_and_margin(cfg.mode.stage1.margin_weight, cfg.mode.stage1.margin),
-               lr=lambda cfg: cfg.mode.stage1.lr),
-     StageSpec("B2", demo_share=lambda cfg: cfg.mode.stage2.demo_fraction, fresh_optimizer=True,
-               lr=lambda cfg: cfg.mode.stage2.lr, n_step=lambda cfg: cfg.mode.stage2.n_step,
-               updates_per_round=lambda cfg: cfg.mode.stage2.updates_per_round,
-               terms=lambda cfg: _td_and_margin(cfg.mode.stage2.margin_weight, cfg.mode.stage1.margin),
-               exploration=lambda cfg: (cfg.mode.stage2.eps_start, cfg.mode.stage2.eps_end,
-                                        cfg.mode.stage2.eps_decay_frames))),
-    schema=ModeBConfig, check=_check_b))
+    (StageSpec("B1", settings="stage1", lr=lambda m: m.stage1.lr,
+               terms=lambda m: _td_and_margin(m.stage1.margin_weight, m.stage1.margin)),
+     StageSpec("B2", demo_share=lambda m: m.stage2.demo_fraction, fresh_optimizer=True,
+               lr=lambda m: m.stage2.lr, n_step=lambda m: m.stage2.n_step,
+               updates_per_round=lambda m: m.stage2.updates_per_round,
+               terms=lambda m: _td_and_margin(m.stage2.margin_weight, m.stage1.margin),
+               exploration=lambda m: (m.stage2.eps_start, m.stage2.eps_end, m.stage2.eps_decay_frames))),
+    schema=ModeBConfig, presets=B_PRESETS))
 """Mode B: stage 1 (``B1``) trains on prior knowledge alone until its checks stop it; stage 2
 (``B2``) starts from its weights with a fresh Adam and trains as Default, keeping
 ``stage2.demo_fraction`` of the buffer for the prior knowledge with the margin loss on it
@@ -528,8 +567,8 @@ register_mode(ModeSpec(
 
 register_mode(ModeSpec(
     "R", "R",
-    (StageSpec("R", demo_share=lambda cfg: cfg.mode.demo_fraction,
-               terms=lambda cfg: _td_and_margin(cfg.mode.margin_weight, cfg.mode.margin)),),
+    (StageSpec("R", demo_share=lambda m: m.demo_fraction,
+               terms=lambda m: _td_and_margin(m.margin_weight, m.margin)),),
     schema=ModeRConfig, presets={"smoke": SMOKE_DEMOS}))
 """Mode R: RLPD's symmetric sampling, prior knowledge at half of every batch from the first
 update, no offline stage; the margin term optional (``margin_weight``, off). The worked example

@@ -174,7 +174,7 @@ def check_train(cfg: DictConfig) -> None:
     if mode.needs_demos and demos is None:
         check_recipe(cfg.mode.get("example"), cfg.env, "mode.example")
     # the offline stage's settings (mode B's stage1), where the mode has one
-    offline = [s.settings for s in mode.stages if s.settings is not None]
+    offline = [s.settings for s in mode.stages if s.offline]
     init = cfg.mode[offline[0]].get("init") if offline else None
     if init is not None:
         from memrl.checkpoint import CheckpointError, stage1_source
@@ -202,11 +202,11 @@ def check_resume(cfg: DictConfig) -> None:
     state = ckpt.load_state(ckpt.find(run), cfg)
     from memrl.modes import mode_of
 
-    offline = [s.name for s in mode_of(cfg).stages if s.settings is not None]
-    if offline and state["counters"]["stage"] not in offline:  # past its offline stage: from stage1.pt
-        from memrl.checkpoint import check_stage1
+    offline = [s.name for s in mode_of(cfg).stages if s.offline]
+    if offline and state["counters"]["stage"] not in offline:  # past its offline stage: from its weights
+        from memrl.checkpoint import OFFLINE_WEIGHTS, check_stage1
 
-        check_stage1(run / "checkpoints" / "stage1.pt")
+        check_stage1(run / "checkpoints" / OFFLINE_WEIGHTS)
 
 
 def check_recipe(recipe: Any, env: Any, key: str) -> None:

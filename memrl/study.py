@@ -153,11 +153,13 @@ def report_config(cfg: DictConfig, folders: list[Path], labels: list[str],
 
 
 def comparison_pairs(grid: list[Cell], labels: list[str]) -> list[list[str]]:
-    """B vs Default and A vs Default within each (variant, traffic): ``[B (cue), Default (cue)]``."""
+    """Each mode against the baseline (the mode no ``+mode`` selects: Default) within each
+    (variant, traffic), the latest declared first: ``[B (cue), Default (cue)]``, then A's."""
     suffixes = dict.fromkeys(c.label[len(c.mode):] for c in grid)
-    others = [m.label for m in reversed(MODES.values()) if m.name != "default"]  # B, A
-    return [[f"{m}{sfx}", f"Default{sfx}"] for m in others for sfx in suffixes
-            if f"Default{sfx}" in labels and f"{m}{sfx}" in labels]
+    base = next(m.label for m in MODES.values() if not m.overrides)
+    others = [m.label for m in reversed(MODES.values()) if m.overrides]  # R, B, A
+    return [[f"{m}{sfx}", f"{base}{sfx}"] for m in others for sfx in suffixes
+            if f"{base}{sfx}" in labels and f"{m}{sfx}" in labels]
 
 
 def trained_only(cfg: DictConfig, folder: Path, outcome: Outcome, extended: list[str],

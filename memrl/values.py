@@ -63,11 +63,21 @@ class QFunctions:
             self.batch_q = self._batch_outputs["q"]
         return self._batch_outputs
 
+    def view(self, net: nn.Module) -> QFunctions:
+        """The same learner seen through ``net``, a part of :attr:`qnet` (a crash-risk critic's
+        value head, :mod:`memrl.modules.risk`): its outputs, online and target, and its forward
+        for the hooks; a fresh :attr:`batch_q` and :attr:`td_error`."""
+        return QFunctions(self._loss, net, self.batch, keep_batch_q=self._keep)
+
+    def target_params(self) -> Any:
+        """A context in which :attr:`qnet` (and its parts) holds the target network's weights."""
+        actor = self._loss.value_network
+        return self._loss.target_value_network_params.to_module(actor, preserve_module_state=False)
+
     @torch.no_grad()
     def target(self, pixels: torch.Tensor) -> dict[str, torch.Tensor]:
         """The target network's outputs of ``pixels`` (no gradients)."""
-        actor = self._loss.value_network
-        with self._loss.target_value_network_params.to_module(actor, preserve_module_state=False):
+        with self.target_params():
             return network_outputs(self.qnet, pixels)
 
     @torch.no_grad()

@@ -164,11 +164,11 @@ def built_stage_buffer(compose_cfg, demos, mode, stage: str, overrides: list[str
     """The buffer that stage ``stage`` of ``TINY + mode + overrides`` is built with."""
     import torch
 
-    from memrl.dqn.builder import build_stage
+    from memrl.dqn.builder import StageInputs, build_stage
     from memrl.modes import mode_of
 
     cfg = compose_cfg("train", TINY + tiny_mode(mode) + overrides)
-    return build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu")).buffer
+    return build_stage(mode_of(cfg).stage(stage), StageInputs.of(cfg), demos, 1, torch.device("cpu")).buffer
 
 
 def tree_hashes(folder: Path) -> dict[str, str]:

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from memrl.data.priority_sampler import TD_KEY
-from memrl.dqn.config import AgentConfig, TrainConfigError, check_train_config
+from memrl.dqn.config import AgentConfig, check_train_config
 from memrl.dqn.learner import Learner
+from memrl.errors import ConfigError
 from memrl.losses import TDTerm, target_action_gap
 from tests.helpers import EVERY_STAGE, TINY, tiny_mode
 from tests.test_learner import batch
@@ -96,18 +97,18 @@ def test_a_learner_without_terms_takes_alpha_from_its_config():
 
 @pytest.mark.parametrize("mode, stage, overrides", EVERY_STAGE)
 def test_every_stage_is_built_with_the_configured_alpha(compose_cfg, demos, mode, stage, overrides):
-    from memrl.dqn.builder import build_stage
+    from memrl.dqn.builder import StageInputs, build_stage
     from memrl.modes import mode_of
 
     cfg = compose_cfg("train", TINY + tiny_mode(mode) + overrides + ["agent.advantage_learning=0.9"])
-    built = build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu"))
+    built = build_stage(mode_of(cfg).stage(stage), StageInputs.of(cfg), demos, 1, torch.device("cpu"))
     assert built.terms[0] == TDTerm(advantage=0.9)
 
 
 @pytest.mark.parametrize("alpha", ["1.0", "-0.1"])
 def test_alpha_outside_0_1_is_refused_naming_the_key(compose_cfg, alpha):
     cfg = compose_cfg("train", TINY + [f"agent.advantage_learning={alpha}"])
-    with pytest.raises(TrainConfigError, match="agent.advantage_learning"):
+    with pytest.raises(ConfigError, match="agent.advantage_learning"):
         check_train_config(cfg)
 
 

@@ -214,9 +214,10 @@ def test_bfloat16_conv_trunk_keeps_the_update_close_to_float32():
 
 
 def test_unknown_precision_is_refused_naming_the_key(compose_cfg):
-    from memrl.dqn.config import TrainConfigError, check_train_config
+    from memrl.dqn.config import check_train_config
+    from memrl.errors import ConfigError
 
-    with pytest.raises(TrainConfigError, match="agent.precision"):
+    with pytest.raises(ConfigError, match="agent.precision"):
         check_train_config(compose_cfg("train", ["agent.precision=float16"]))
 
 

@@ -8,7 +8,8 @@ import torch
 
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer
 from memrl.data.crash_sampler import CrashShareSampler, crash_rows
-from memrl.dqn.config import TrainConfigError, check_train_config
+from memrl.dqn.config import check_train_config
+from memrl.errors import ConfigError
 from tests.helpers import (
     EVERY_STAGE,
     assert_kill_and_resume_is_exact,
@@ -87,7 +88,7 @@ def test_mode_a_keeps_its_demo_count_and_shares_the_agent_part():
 def test_share_out_of_range_is_refused(compose_cfg):
     with pytest.raises(ValueError, match="crash share"):
         CrashShareSampler(1.0)
-    with pytest.raises(TrainConfigError, match=r"config 'buffer.crash_share': must be in \[0, 1\), got 1.5"):
+    with pytest.raises(ConfigError, match=r"config 'buffer.crash_share': must be in \[0, 1\), got 1.5"):
         check_train_config(compose_cfg("train", ["buffer.crash_share=1.5"]))
 
 

@@ -85,10 +85,10 @@ def test_epsilon_anneals_by_frames_in_one_step():
 
 
 def test_an_unknown_exploration_names_the_key(compose_cfg, tmp_path):
-    from memrl.dqn.config import TrainConfigError
+    from memrl.errors import ConfigError
 
     cfg = compose_cfg("train", TINY + ["agent.exploration=noisy"])
-    with pytest.raises(TrainConfigError, match=r"agent\.exploration"):
+    with pytest.raises(ConfigError, match=r"agent\.exploration"):
         train(cfg, tmp_path)
 
 

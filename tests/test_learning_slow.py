@@ -37,16 +37,17 @@ def test_stage1_agent_drives_like_the_demonstrations(compose_cfg, tmp_path, seed
     trainer = Trainer(cfg, tmp_path / "run", demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = time.perf_counter(), 0, 0
     start = time.perf_counter()
-    trainer.run_stage1()
+    trainer.run_offline()
     wall = time.perf_counter() - start
+    p = trainer.offline_progress
     survived, reached, both = drive_greedy(trainer.learner.qnet, env_cfg, 20)
     report = {"seed": seed, "demo_seed": 5000 * seed, "demos": len(demos), "record_s": round(record_s, 1),
-              "stage1_updates": trainer.stage1.updates, "stop": trainer.stage1.stop_reason,
-              "agreements": [round(a, 3) for a in trainer.stage1.agreements],
-              "last_check_parts": trainer.stage1.parts[-1],
-              "drives": trainer.stage1.drives, "best_updates": trainer.stage1.best_updates,
-              "wall_s": round(wall, 1), "drive_s": round(trainer.stage1.drive_s, 1),
-              "updates_per_s": round(trainer.stage1.updates / (wall - trainer.stage1.drive_s), 2),
+              "stage1_updates": p.updates, "stop": p.stop_reason,
+              "agreements": [round(a, 3) for a in p.agreements],
+              "last_check_parts": p.parts[-1],
+              "drives": p.drives, "best_updates": p.best_updates,
+              "wall_s": round(wall, 1), "drive_s": round(p.drive_s, 1),
+              "updates_per_s": round(p.updates / (wall - p.drive_s), 2),
               "survived_of_20": survived, "reached_of_20": reached, "both_of_20": both}
     print(json.dumps(report))
     (tmp_path / "report.json").write_text(json.dumps(report))

@@ -28,13 +28,13 @@ def test_mode_r_samples_half_demos_from_the_first_update_with_no_offline_stage(c
 
 
 def test_mode_r_builds_the_margin_term_only_when_asked(compose_cfg, demos):
-    from memrl.dqn.builder import build_stage
+    from memrl.dqn.builder import StageInputs, build_stage
     from memrl.losses import MarginTerm, TDTerm
 
     for extra, terms in (([], (TDTerm(),)), (["mode.margin_weight=2", "mode.margin=0.5"],
                                              (TDTerm(), MarginTerm(2.0, 0.5)))):
         cfg = compose_cfg("train", [*TINY, "+mode=R", *extra])
-        stage = build_stage(MODES["R"].stage("R"), cfg, demos, num_envs=1, device=torch.device("cpu"))
+        stage = build_stage(MODES["R"].stage("R"), StageInputs.of(cfg), demos, 1, torch.device("cpu"))
         assert stage.terms == terms
 
 

@@ -43,9 +43,9 @@ def toy_mode():
     ``+mode=toy`` (what ``conf/mode/toy.yaml`` would hold) are all there is to it."""
     spec = register_mode(ModeSpec(
         "toy", "Toy",
-        (StageSpec("toy_online", demo_share=lambda cfg: 0.5,
-                   terms=lambda cfg: (HEAD_TD, MarginTerm(1.0, 0.5)),
-                   exploration=lambda cfg: (0.5, 0.05, 300)),),
+        (StageSpec("toy_online", demo_share=lambda m: 0.5,
+                   terms=lambda m: (HEAD_TD, MarginTerm(1.0, 0.5)),
+                   exploration=lambda m: (0.5, 0.05, 300)),),
         schema=ToyModeConfig))
     ConfigStore.instance().store(group="mode", name="toy", package="_global_",
                                  node={"defaults": [{"override /mode_schema": "toy"}]})
@@ -208,7 +208,8 @@ def test_the_stage_losses_equal_the_formula_before_loss_terms(compose_cfg, tmp_p
             if w > 0 and bool(demo.any()):
                 q = reference.qnet(batch["pixels"][demo])
                 a = batch["action"][demo].reshape(-1, 1)
-                margins = torch.full_like(q, float(cfg.mode.stage1.margin)).scatter_(-1, a, 0.0)
+                margin = cfg.mode.margin if "margin" in cfg.mode else cfg.mode.stage1.margin  # A, R / B
+                margins = torch.full_like(q, float(margin)).scatter_(-1, a, 0.0)
                 expected = expected + w * ((q + margins).max(-1).values - q.gather(-1, a).squeeze(-1)).mean()
         assert float(expected) == loss, stage
 
@@ -244,10 +245,10 @@ def test_a_demo_only_batch_costs_one_online_forward_and_keeps_the_margin_gradien
 
 SCHEMA_KEYS = {
     "default": {"name"},
-    "A": {"name", "demos_path", "example", "demo_fraction", "margin_weight", "sampling", "stage1"},
+    "A": {"name", "demos_path", "example", "demo_fraction", "margin_weight", "margin", "sampling"},
     "B": {"name", "demos_path", "example", "sampling", "stage1", "stage2"},
 }
-"""Each paper mode's top-level ``mode`` keys (A's ``stage1`` is the margin of its margin loss)."""
+"""Each paper mode's top-level ``mode`` keys."""
 
 
 @pytest.mark.parametrize("preset", [None, "paper", "smoke", "imitation"])
@@ -263,14 +264,20 @@ def test_the_mode_node_holds_only_the_selected_modes_keys_in_either_order(compos
     assert set(first.mode) == SCHEMA_KEYS[mode]
     assert OmegaConf.get_type(first.mode) is MODES[mode].schema
     assert OmegaConf.to_container(first) == OmegaConf.to_container(second)
-    if mode == "A":
-        assert set(first.mode.stage1) == {"margin"}
-    # the preset's values of the mode's keys are there, whatever the order
+    # the preset's values of the mode's keys (ModeSpec.presets) are there, whatever the order
     if preset == "paper" and mode != "default":
         assert first.mode.example.episodes == 10
         assert (first.mode.margin_weight if mode == "A" else first.mode.stage2.margin_weight) == 0
+    if preset == "paper" and mode == "B":
+        assert first.mode.stage2.eps_decay_frames == 1_000_000 and first.mode.stage1.lr is None
+    if preset == "smoke" and mode != "default":
+        assert first.mode.example.episodes == 12
     if preset == "smoke" and mode == "B":
-        assert first.mode.stage1.max_updates == 200 and first.mode.example.episodes == 12
+        assert first.mode.stage1.max_updates == 200 and first.mode.stage2.eps_decay_frames == 1500
+    if preset == "imitation" and mode == "B":
+        assert first.mode.stage1.drive_target == 0.75 and first.mode.stage1.max_updates == 20000
+    if preset is None and mode == "B":
+        assert first.mode.stage1.drive_target == 0.875 and first.mode.stage1.max_updates == 30000
 
 
 @pytest.mark.parametrize(("overrides", "line"), [
@@ -306,7 +313,7 @@ def test_a_study_gives_each_mode_only_its_own_mode_keys():
              "mode.stage1.margin=0.5", "mode.stage1.nokey=1"]
     assert MODES["default"].own_overrides(given) == ["seed=1", "mode.stage1.nokey=1"]
     assert MODES["A"].own_overrides(given) == ["seed=1", "mode.demo_fraction=0.2", "mode.example.episodes=3",
-                                              "mode.stage1.margin=0.5", "mode.stage1.nokey=1"]
+                                              "mode.stage1.nokey=1"]
     assert MODES["B"].own_overrides(given) == ["seed=1", "mode.stage1.max_updates=4",
                                               "mode.example.episodes=3", "mode.stage1.margin=0.5",
                                               "mode.stage1.nokey=1"]

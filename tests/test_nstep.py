@@ -171,11 +171,11 @@ def test_mode_a_buffer_windows_both_parts():
 
 
 def test_n_step_below_one_names_the_key(compose_cfg, tmp_path):
-    from memrl.dqn.config import TrainConfigError
+    from memrl.errors import ConfigError
     from memrl.train import train
     from tests.helpers import TINY
 
-    with pytest.raises(TrainConfigError, match=r"config 'agent.n_step': must be >= 1, got 0"):
+    with pytest.raises(ConfigError, match=r"config 'agent.n_step': must be >= 1, got 0"):
         train(compose_cfg("train", TINY + ["agent.n_step=0"]), tmp_path / "run")
 
 

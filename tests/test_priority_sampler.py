@@ -8,8 +8,9 @@ import torch
 
 from memrl.data.buffers import PriorKnowledgeBuffer, agent_buffer, priority_sampler
 from memrl.data.priority_sampler import PrioritySampler, reprioritize
-from memrl.dqn.config import TrainConfigError, check_train_config
+from memrl.dqn.config import check_train_config
 from memrl.dqn.loop import Trainer
+from memrl.errors import ConfigError
 from tests.helpers import EVERY_STAGE, TINY, assert_kill_and_resume_is_exact, built_stage_buffer, tiny_mode
 from tests.test_buffers import fake
 
@@ -102,11 +103,11 @@ def test_the_td_loss_is_the_weighted_mean_and_writes_the_td_errors(compose_cfg):
 def test_bad_values_are_refused(compose_cfg):
     with pytest.raises(ValueError, match="alpha"):
         PrioritySampler(10, alpha=0.0, beta=0.5)
-    with pytest.raises(TrainConfigError, match=r"config 'buffer.priority': must be in \[0, 1\], got 1.5"):
+    with pytest.raises(ConfigError, match=r"config 'buffer.priority': must be in \[0, 1\], got 1.5"):
         check_train_config(compose_cfg("train", ["buffer.priority=1.5"]))
-    with pytest.raises(TrainConfigError, match="'buffer.priority': prioritized replay and"):
+    with pytest.raises(ConfigError, match="'buffer.priority': prioritized replay and"):
         check_train_config(compose_cfg("train", ["buffer.priority=0.5", "buffer.crash_share=0.1"]))
-    with pytest.raises(TrainConfigError, match="config 'mode.sampling': prioritized replay keeps"):
+    with pytest.raises(ConfigError, match="config 'mode.sampling': prioritized replay keeps"):
         check_train_config(compose_cfg("train", ["+mode=A", "mode.sampling=proportional",
                                                  "buffer.priority=0.5"]))
 

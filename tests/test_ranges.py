@@ -5,7 +5,7 @@ The walk reads the schemas from Hydra's ConfigStore (what :func:`memrl.configs.r
 registers), so a new schema or a new numeric key cannot arrive unchecked: each registered schema
 needs a place below (``PLACES``: the command whose start check reads it), and each int or float
 field (``int | None``, ``list[float]``, ... included, nested schemas too) a range
-(:func:`memrl.fields.spec`; the env's keys: their rule in ``memrl.envs.config.RULES``). The
+(:func:`memrl.fields.spec`, the env's keys too). The
 refusals run in-process, through each command's start check (``memrl.schemas.CHECKS``).
 """
 
@@ -102,8 +102,7 @@ class Leaf(typing.NamedTuple):
     kind: type
     is_list: bool
     env: bool
-    """A key of the env schema (its rules: ``memrl.envs.config.RULES``; messages name the key
-    without ``env.``)."""
+    """A key of the env schema (its messages name the key without ``env.``)."""
 
 
 @cache
@@ -126,10 +125,6 @@ def every_leaf() -> list[Leaf]:
 
 def outside(leaf: Leaf) -> list[Any]:
     """Values the declared range refuses."""
-    if leaf.env:
-        from memrl.envs.config import RULES
-
-        return list(RULES[leaf.key.removeprefix("env.")][0].outside)
     meta, kind = leaf.field.metadata, leaf.kind
     bad: list[Any] = []
     if "ge" in meta:
@@ -162,14 +157,9 @@ def test_every_registered_schema_is_walked():
 @pytest.mark.parametrize("leaf", every_leaf(), ids=lambda leaf: f"{leaf.command}:{leaf.key}")
 def test_every_numeric_key_declares_a_range(leaf):
     command, key, f, kind = leaf.command, leaf.key, leaf.field, leaf.kind
-    if leaf.env:
-        from memrl.envs.config import RULES
-
-        assert key.removeprefix("env.") in RULES, f"{key}: no rule in memrl.envs.config.RULES"
-    else:
-        assert set(f.metadata) & set(RANGE_KEYS), f"{command} {key}: no range (memrl.fields.spec)"
-        if kind is float and not f.metadata.get("finite"):
-            assert set(f.metadata) & set(BOUNDS), f"{key}: give bounds, or finite=True"
+    assert set(f.metadata) & set(RANGE_KEYS), f"{command} {key}: no range (memrl.fields.spec)"
+    if kind is float and not f.metadata.get("finite"):
+        assert set(f.metadata) & set(BOUNDS), f"{key}: give bounds, or finite=True"
 
 
 @cache

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from memrl.dqn.config import TrainConfigError, check_train_config
+from memrl.dqn.config import check_train_config
 from memrl.envs.config import EnvConfigError
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.risk import risk, shaping_reward
+from memrl.errors import ConfigError
 from tests.batched_helpers import compare, random_actions
 from tests.helpers import TINY
 
@@ -132,7 +133,7 @@ def test_bad_shaping_values_are_refused_in_one_line(compose_cfg):
     with pytest.raises(EnvConfigError, match="shaping.horizon"):
         LaneChangeEnv(config={"shaping": {"horizon": 0.0}})
     cfg = compose_cfg("train", TINY + ["env.shaping.weight=1.0", "agent.gamma=0.99"])
-    with pytest.raises(TrainConfigError, match="env.shaping.gamma.*agent.gamma"):
+    with pytest.raises(ConfigError, match="env.shaping.gamma.*agent.gamma"):
         check_train_config(cfg)
     check_train_config(compose_cfg("train", TINY + ["env.shaping.weight=1.0", "agent.gamma=0.99",
                                                     "env.shaping.gamma=0.99"]))

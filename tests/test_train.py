@@ -51,12 +51,13 @@ def test_mode_b_switches_when_its_criterion_fires_and_stage2_starts_from_stage1(
     trainer = Trainer(cfg, tmp_path, demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
     assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {0.003}
-    trainer.run_stage1()
+    trainer.run_offline()
     # stage 2 gets a fresh Adam at agent.lr
     assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {cfg.agent.lr}
     assert not trainer.learner.optimizer.state
     # agreement >= 0 holds at the first check: stage 1 stops after check_every updates
-    assert trainer.stage1.updates == 4 and trainer.stage1.stop_reason.startswith("agreement")
+    p = trainer.offline_progress
+    assert p.updates == 4 and p.stop_reason.startswith("agreement")
     # a fresh buffer: no agent data yet, the prior knowledge at round(0.1 x 400) = 40 items
     buffer = trainer.stage.buffer
     assert trainer.counters.stage == "B2" and len(buffer.online_buffer) == 0
@@ -82,7 +83,7 @@ def test_mode_b_stage2_has_its_own_rate_and_n_step_when_set(compose_cfg, tmp_pat
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
     assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {0.003}
     assert STEPS_KEY not in trainer.stage.buffer.sample().keys()  # stage 1: 1-step
-    trainer.run_stage1()
+    trainer.run_offline()
     assert trainer.counters.stage == "B2"
     assert {g["lr"] for g in trainer.learner.optimizer.param_groups} == {0.0007}
     assert not trainer.learner.optimizer.state
@@ -119,9 +120,9 @@ def test_stage1_stops_at_max_updates_without_a_criterion(compose_cfg, tmp_path, 
                                        "mode.stage1.max_updates=6"])
     trainer = Trainer(cfg, tmp_path, demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
-    trainer.run_stage1()
-    assert trainer.stage1.updates == 6 and "max_updates" in trainer.stage1.stop_reason
-    s1 = trainer.stage1
+    trainer.run_offline()
+    assert trainer.offline_progress.updates == 6 and "max_updates" in trainer.offline_progress.stop_reason
+    s1 = trainer.offline_progress
     assert len(s1.parts) == len(s1.agreements) == 2  # checks at 4 and at the stop (6)
     assert all(0 <= v <= 1 for part in s1.parts for v in part.values())
 
@@ -138,10 +139,11 @@ def test_stage2_from_another_runs_stage1_trains_no_stage1_of_its_own(compose_cfg
                                        "agent.exploration=ez_greedy"])
     trainer = Trainer(cfg, tmp_path / "run", demos)
     trainer._t_start, trainer._frames0, trainer._updates0 = 0.0, 0, 0
-    trainer.run_stage1()
+    trainer.run_offline()
     assert trainer.counters.stage == "B2" and trainer.counters.updates == 0
-    assert trainer.stage1.stop_reason.startswith(f"from {tmp_path / 'src' / 'checkpoints' / 'stage1.pt'}")
-    assert trainer.stage1.updates == src_updates  # its record, not new updates
+    src = tmp_path / "src" / "checkpoints" / "stage1.pt"
+    assert trainer.offline_progress.stop_reason.startswith(f"from {src}")
+    assert trainer.offline_progress.updates == src_updates  # its record, not new updates
     theirs = torch.load(tmp_path / "src" / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
     copy = torch.load(tmp_path / "run" / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
     now = trainer.learner.loss_module.state_dict()
@@ -238,7 +240,7 @@ def test_mode_b_on_n_envs_killed_in_stage_1_resumes_exactly(compose_cfg, tmp_pat
 
     def dying(self):
         original(self)
-        if self.counters.stage == "B1" and self.stage1.updates == 8:
+        if self.counters.stage == "B1" and self.offline_progress.updates == 8:
             raise Killed("simulated kill")
 
     monkeypatch.setattr(Trainer, "save_checkpoint", dying)
@@ -296,8 +298,27 @@ def test_a_default_run_made_when_the_mode_node_held_every_modes_keys_resumes(com
     assert diff == ["mode.demo_fraction: 0.1 (checkpoint) vs 0.3 (now)"]
 
 
-@pytest.mark.parametrize(("mode", "read"), [("A", "mode.stage1.margin=0.5"),
+@pytest.mark.parametrize(("mode", "read"), [("A", "mode.margin=0.5"),
                                             ("B", "mode.stage1.max_updates=7")])
+def test_an_older_a_run_s_margin_under_its_old_name_is_read_as_mode_margin(compose_cfg):
+    """Mode A's margin was ``mode.stage1.margin``: a run that stored it there compares as if it
+    had stored ``mode.margin`` (same value: no difference; another: a difference in
+    ``mode.margin``), so it resumes and shares report rows with a new run."""
+    base = tiny("A") + ["total_episodes=1"]
+    now = ckpt.comparable(compose_cfg("train", base))
+    assert "stage1" not in now["mode"] and now["mode"]["margin"] == 0.8
+
+    def stored_as_before(margin: float) -> dict:
+        mode = {k: v for k, v in now["mode"].items() if k != "margin"}
+        return {**now, "mode": {**mode, "stage1": {"margin": margin}}}
+
+    assert ckpt.config_diff(ckpt.used(stored_as_before(0.8)), ckpt.used(now)) == []
+    assert ckpt.config_diff(ckpt.used(stored_as_before(0.5)), ckpt.used(now)) == [
+        "mode.margin: 0.5 (checkpoint) vs 0.8 (now)"]
+    half = ckpt.comparable(compose_cfg("train", base + ["mode.margin=0.5"]))
+    assert ckpt.config_diff(ckpt.used(stored_as_before(0.5)), ckpt.used(half)) == []
+
+
 def test_a_prior_knowledge_run_ignores_the_other_modes_keys_of_an_older_run(compose_cfg, mode, read):
     """Mode A has no stage key but the margin of its margin loss; mode B not A's two keys: the
     values an older run's union ``mode`` node held for those keep the config the same for
@@ -548,8 +569,8 @@ def test_stage1_keeps_the_weights_that_drove_best(compose_cfg, tmp_path, demos, 
     drives = ScriptedDrives([1, 3, 2])  # checks at 4, 8, 12 updates
     trainer = _stage1(compose_cfg, tmp_path, demos, monkeypatch, drives,
                       ["mode.stage1.criterion=max_updates", "mode.stage1.lr=0.003"])
-    trainer.run_stage1()
-    s1 = trainer.stage1
+    trainer.run_offline()
+    s1 = trainer.offline_progress
     assert [d["updates"] for d in s1.drives] == [4, 8, 12] and s1.best_updates == 8
     assert "weights of update 8" in s1.stop_reason
     best, last = drives.seen[1], drives.seen[2]
@@ -569,10 +590,11 @@ def test_stage1_behaviour_criterion_stops_when_the_drives_reach_the_target(
     trainer = _stage1(compose_cfg, tmp_path, demos, monkeypatch, drives,
                       ["mode.stage1.criterion=behaviour", "mode.stage1.drive_target=0.5",
                        "mode.stage1.max_updates=100"])
-    trainer.run_stage1()
+    trainer.run_offline()
     # 2 of 4 >= 0.5 at the second check; the last weights are the best: no swap
-    assert trainer.stage1.updates == 8 and trainer.stage1.stop_reason.startswith("behaviour")
-    assert "weights of update" not in trainer.stage1.stop_reason
+    p = trainer.offline_progress
+    assert p.updates == 8 and p.stop_reason.startswith("behaviour")
+    assert "weights of update" not in p.stop_reason
     assert trainer.counters.stage == "B2" and drives.both == [4]
 
 
@@ -586,7 +608,7 @@ def test_stage1_resumed_mid_way_keeps_its_best_weights(compose_cfg, tmp_path, de
     extra = ["mode.stage1.criterion=max_updates", "mode.stage1.lr=0.003"]
     full = _stage1(compose_cfg, tmp_path / "full", demos, monkeypatch, ScriptedDrives([3, 1, 2]),
                    extra)
-    full.run_stage1()
+    full.run_offline()
     cut = _stage1(compose_cfg, tmp_path / "cut", demos, monkeypatch, ScriptedDrives([3, 1]), extra)
 
     def die(updates):
@@ -594,13 +616,13 @@ def test_stage1_resumed_mid_way_keeps_its_best_weights(compose_cfg, tmp_path, de
             raise Killed("simulated kill")
 
     with pytest.raises(Killed):
-        cut.run_stage1(die)  # last checkpoint at 8 updates; best so far: update 4
+        cut.run_offline(die)  # last checkpoint at 8 updates; best so far: update 4
     resumed = _stage1(compose_cfg, tmp_path / "cut", demos, monkeypatch, ScriptedDrives([2]), extra)
     resumed.resume(tmp_path / "cut")
-    assert resumed.stage1.updates == 8 and resumed.stage1.best_updates == 4
-    resumed.run_stage1()
-    assert resumed.stage1.best_updates == full.stage1.best_updates == 4
-    assert resumed.stage1.drives == full.stage1.drives
+    assert resumed.offline_progress.updates == 8 and resumed.offline_progress.best_updates == 4
+    resumed.run_offline()
+    assert resumed.offline_progress.best_updates == full.offline_progress.best_updates == 4
+    assert resumed.offline_progress.drives == full.offline_progress.drives
     a, b = full.learner.loss_module.state_dict(), resumed.learner.loss_module.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
 
@@ -634,12 +656,13 @@ def test_drive_check_counts_the_behaviour_in_its_own_scenes(compose_cfg):
                  "mode.stage2.margin_weight=2"], 3.0),
 ])
 def test_each_stage_sets_its_own_margin_weight(compose_cfg, demos, mode, stage, overrides, weight):
-    from memrl.dqn.builder import build_stage
+    from memrl.dqn.builder import StageInputs, build_stage
     from memrl.losses import MarginTerm, TDTerm
     from memrl.modes import mode_of
 
-    cfg = compose_cfg("train", tiny(mode) + ["mode.stage1.margin=0.6"] + overrides)
-    built = build_stage(mode_of(cfg).stage(stage), cfg, demos, num_envs=1, device=torch.device("cpu"))
+    margin = "mode.margin=0.6" if mode == "A" else "mode.stage1.margin=0.6"  # each mode's key
+    cfg = compose_cfg("train", tiny(mode) + [margin] + overrides)
+    built = build_stage(mode_of(cfg).stage(stage), StageInputs.of(cfg), demos, 1, torch.device("cpu"))
     assert built.terms == ((TDTerm(),) if weight == 0 else (TDTerm(), MarginTerm(weight, 0.6)))
 
 

@@ -298,16 +298,17 @@ def test_a_toy_head_from_this_file_trains_with_its_own_term_and_resumes_exactly(
 
 
 def test_a_stages_head_td_is_the_networks_own_term(compose_cfg, demos):
-    from memrl.dqn.builder import build_stage
+    from memrl.dqn.builder import StageInputs, build_stage
     from memrl.losses import MarginTerm, TDTerm
     from memrl.modes import HEAD_TD, MODES, ModeSpec, StageSpec
 
     cfg = compose_cfg("train", ["+experiment=smoke", "network=c51", "+mode=A", "agent.gamma=0.9"])
-    stage = build_stage(MODES["A"].stage("A"), cfg, demos, num_envs=1, device=torch.device("cpu"))
+    stage = build_stage(MODES["A"].stage("A"), StageInputs.of(cfg), demos, 1, torch.device("cpu"))
     assert stage.terms == (C51Term(gamma=0.9), MarginTerm(3.0, 0.8))
-    assert MODES["A"].stage("A").terms(cfg)[0] is HEAD_TD
+    assert MODES["A"].stage("A").terms(cfg.mode)[0] is HEAD_TD
     table1 = compose_cfg("train", ["+experiment=smoke", "+mode=A"])
-    assert build_stage(MODES["A"].stage("A"), table1, demos, 1, torch.device("cpu")).terms[0] == TDTerm()
+    cpu = torch.device("cpu")
+    assert build_stage(MODES["A"].stage("A"), StageInputs.of(table1), demos, 1, cpu).terms[0] == TDTerm()
     # a stage that lists no HEAD_TD trains on its other terms alone
     margin_only = ModeSpec("x", "X", (StageSpec("x1", terms=lambda c: (MarginTerm(1.0),)),), object).stages[0]
-    assert build_stage(margin_only, table1, demos, 1, torch.device("cpu")).terms == (MarginTerm(1.0),)
+    assert build_stage(margin_only, StageInputs.of(table1), demos, 1, cpu).terms == (MarginTerm(1.0),)

@@ -132,9 +132,9 @@ def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any
                stage1: bool = False) -> Callable[[], float]:
     """The training loop's update: sample from the replay buffer, ``Learner.update`` (``network``:
     the architecture; ``stage1``: every sampled row a demo, with the margin term)."""
-    from memrl.dqn.config import Stage1Config
     from memrl.dqn.learner import Learner
     from memrl.losses import MarginTerm, td_term
+    from memrl.modes import Stage1Config
     from memrl.modules.qnet import TABLE1
 
     torch.manual_seed(seed)

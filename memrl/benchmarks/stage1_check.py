@@ -103,21 +103,21 @@ def run(updates: int = 800, variants: list[dict[str, Any]] | None = None, check_
             trainer = Trainer(cfg, Path(tmp) / "run", demos)
             curve = _DriveCurve(trainer, env_cfg, episodes, drive_every, updates)
             start = time.perf_counter()
-            trainer.run_stage1(curve)
-            wall = time.perf_counter() - start - curve.seconds - trainer.stage1.drive_s
+            trainer.run_offline(curve)
+            wall = time.perf_counter() - start - curve.seconds - trainer.offline_progress.drive_s
             survived, reached, both = drive_greedy(trainer.learner.qnet, env_cfg, episodes)
             curve.points.append({"updates": updates, "survived": survived, "reached": reached,
                                  "both": both})
         out["runs"].append({"variant": name, "overrides": list(overrides),
                             "margin_weight": float(cfg.mode.stage1.margin_weight),
                             "demos": len(demos), "demo_recipe": recipe or "example",
-                            "agreements": [round(a, 3) for a in trainer.stage1.agreements],
+                            "agreements": [round(a, 3) for a in trainer.offline_progress.agreements],
                             "last_check_parts": {k: round(v, 3) for k, v in
-                                                 trainer.stage1.parts[-1].items()},
-                            "stop": trainer.stage1.stop_reason,
-                            "drives": trainer.stage1.drives,
-                            "best_updates": trainer.stage1.best_updates,
-                            "drive_s": round(trainer.stage1.drive_s, 1),
+                                                 trainer.offline_progress.parts[-1].items()},
+                            "stop": trainer.offline_progress.stop_reason,
+                            "drives": trainer.offline_progress.drives,
+                            "best_updates": trainer.offline_progress.best_updates,
+                            "drive_s": round(trainer.offline_progress.drive_s, 1),
                             "updates_per_s": round(updates / wall, 2), "wall_s": round(wall, 1),
                             "survived_non_goal": survived, "reached_non_goal": reached,
                             "both_non_goal": both, "curve": curve.points})

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from memrl.checkpoint.errors import CheckpointError
 from memrl.checkpoint.networks import (
+    OFFLINE_WEIGHTS,
     check_stage1,
     describe,
     load_qnet,
@@ -27,6 +28,7 @@ from memrl.checkpoint.networks import (
     qnet_from,
     qnet_weights,
     resolve,
+    save_offline,
     save_qnet,
     stage1_file,
     stage1_source,
@@ -37,7 +39,7 @@ from memrl.checkpoint.policy import GreedyQPolicy, load_policy
 from memrl.checkpoint.resume import recorded_config
 from memrl.checkpoint.weights import CHECKSUM_KEY, load_weights, save_weights
 
-__all__ = ["CHECKSUM_KEY", "CheckpointError", "GreedyQPolicy", "LearnedCarController", "OpponentPoolError",
-           "check_stage1", "describe", "load_policy", "load_qnet", "load_stage1_qnet", "load_weights",
-           "qnet_from", "qnet_weights", "recorded_config", "resolve", "save_qnet", "save_weights",
-           "stage1_file", "stage1_source", "stored_arch"]
+__all__ = ["CHECKSUM_KEY", "OFFLINE_WEIGHTS", "CheckpointError", "GreedyQPolicy", "LearnedCarController",
+           "OpponentPoolError", "check_stage1", "describe", "load_policy", "load_qnet", "load_stage1_qnet",
+           "load_weights", "qnet_from", "qnet_weights", "recorded_config", "resolve", "save_offline",
+           "save_qnet", "save_weights", "stage1_file", "stage1_source", "stored_arch"]

@@ -41,6 +41,20 @@ def save_qnet(path: str | Path, net: torch.nn.Module, env_cfg: dict[str, Any],
     return save_weights(path, {"qnet": weights, "network": arch_of(net), "env": env_cfg, **(extra or {})})
 
 
+OFFLINE_WEIGHTS = "stage1.pt"
+"""The file (in a run's ``checkpoints/``) that holds the weights an offline stage ends with
+(:attr:`memrl.modes.StageSpec.settings`): the stage-1 network of the paper's mode B, which the
+next stage starts from, ``mode.stage1.init`` shares and evaluation reads (``weights=stage1``)."""
+
+
+def save_offline(checkpoints: Path, loss_module: torch.nn.Module, net: torch.nn.Module,
+                 progress: dict[str, Any]) -> Path:
+    """Write an offline stage's end state, ``checkpoints/stage1.pt``: the loss module's weights
+    (online and target networks), the architecture loaders rebuild, the stop rule's record."""
+    return save_weights(checkpoints / OFFLINE_WEIGHTS, {"loss_module": loss_module.state_dict(),
+                                                        "network": arch_of(net), "stage1": progress})
+
+
 def stored_arch(state: dict[str, Any]) -> dict[str, Any]:
     """The architecture a weights file stores; Table I for files written before they did."""
     arch = state.get("network")
@@ -110,7 +124,8 @@ def stage1_file(path: str | Path) -> Path:
     """``<run>/checkpoints/stage1.pt`` of a mode B run folder, its ``checkpoints`` folder or
     the file itself."""
     p = Path(path)
-    file = next((c for c in (p, p / "stage1.pt", p / "checkpoints" / "stage1.pt") if c.is_file()), None)
+    candidates = (p, p / OFFLINE_WEIGHTS, p / "checkpoints" / OFFLINE_WEIGHTS)
+    file = next((c for c in candidates if c.is_file()), None)
     if file is None:
         raise CheckpointError(f"{path}: no stage-1 network (expected checkpoints/stage1.pt of a mode B run)")
     return file

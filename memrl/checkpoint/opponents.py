@@ -29,6 +29,7 @@ from memrl.envs.controllers import CarController, register_controller
 from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS, CurvatureVehicle
 from memrl.errors import UserError
+from memrl.modules.qnet import decision_values
 
 if TYPE_CHECKING:
     from memrl.envs.lane_change import LaneChangeEnv
@@ -154,7 +155,8 @@ class LearnedCarController(CarController):
         out = torch.empty(len(stacks), N_ACTIONS, device=stacks.device)
         for index in model_index.unique().tolist():
             cars = model_index == index
-            out[cars] = torch.cat([self.networks[index](part) for part in stacks[cars].split(64)])
+            out[cars] = torch.cat([decision_values(self.networks[index], part)  # a risk critic: safe choice
+                                   for part in stacks[cars].split(64)])
         return out
 
     def reset(self, env: LaneChangeEnv, cars: Sequence[CurvatureVehicle]) -> None:

@@ -51,49 +51,74 @@ class Stage:
         return self.explore is None
 
 
-def build_stage(spec: StageSpec, cfg: DictConfig, demos: TensorDictBase | None, num_envs: int,
+@dataclass(frozen=True)
+class StageInputs:
+    """The train config's nodes a stage is built from, and nothing else of it."""
+
+    mode: Any
+    """The ``mode`` node: the only thing a stage declaration reads (:class:`StageSpec`)."""
+    agent: Any
+    """The ``agent`` node (:class:`memrl.dqn.config.AgentConfig`)."""
+    buffer: Any
+    """The ``buffer`` node (:class:`memrl.dqn.config.BufferConfig`)."""
+    network: Any
+    """The ``network`` node: whose TD term stands in for :data:`memrl.modes.HEAD_TD`."""
+    seed: int
+    """The run's seed (an offline stage's held-out split)."""
+    frame_stride: int = 1
+    """``env.frame_stride``: env steps between stacked frames (the n-step windows' stride)."""
+
+    @classmethod
+    def of(cls, cfg: DictConfig) -> StageInputs:
+        """The nodes of a train config."""
+        return cls(cfg.mode, cfg.agent, cfg.buffer, cfg.network, int(cfg.seed), int(cfg.env.frame_stride))
+
+
+def build_stage(spec: StageSpec, nodes: StageInputs, demos: TensorDictBase | None, num_envs: int,
                 device: torch.device) -> Stage:
-    """Build stage ``spec`` of the run ``cfg``.
+    """Build stage ``spec`` from the train config's ``nodes``.
 
     Args:
         spec: the stage's declaration.
-        cfg: the train config.
+        nodes: the train config's nodes it reads.
         demos: the prior knowledge (modes that read it).
         num_envs: envs writing into the buffer (its frame ring has one stream per env).
         device: where the buffer lives.
     """
-    a = cfg.agent
-    capacity, batch = int(cfg.buffer.capacity), int(a.batch_size)
-    compact = bool(cfg.buffer.compact)  # each frame stored once
+    a, b, m = nodes.agent, nodes.buffer, nodes.mode
+    capacity, batch = int(b.capacity), int(a.batch_size)
+    compact = bool(b.compact)  # each frame stored once
     store: dict[str, Any] = {"compact": compact, "streams": num_envs, "device": device,
-                             "crash_share": float(cfg.buffer.crash_share),
-                             "priority": float(cfg.buffer.priority),
-                             "priority_beta": float(cfg.buffer.priority_beta)}
-    n_step = spec.n_step(cfg)
+                             "crash_share": float(b.crash_share), "priority": float(b.priority),
+                             "priority_beta": float(b.priority_beta)}
+
+    def own(value: Any, default: Any) -> Any:  # a stage's own value, else the agent's
+        return default if value is None else value
+
     # memrl.data.nstep
-    nstep = {"n_step": int(a.n_step if n_step is None else n_step), "gamma": float(a.gamma)}
-    if int(cfg.env.frame_stride) != 1:  # frames between stacked frames
-        nstep["stride"] = int(cfg.env.frame_stride)
+    nstep = {"n_step": int(own(spec.n_step(m), a.n_step)), "gamma": float(a.gamma)}
+    if nodes.frame_stride != 1:  # frames between stacked frames
+        nstep["stride"] = nodes.frame_stride
     # the stage's terms, HEAD_TD replaced by the value head's own TD term
-    terms = tuple(td_term(a, cfg.network) if isinstance(t, HeadTD) else t for t in spec.terms(cfg))
-    lr = spec.lr(cfg)
+    terms = tuple(td_term(a, nodes.network) if isinstance(t, HeadTD) else t for t in spec.terms(m))
+    lr = spec.lr(m)
     lr = None if lr is None else float(lr)
-    share = float(spec.demo_share(cfg))
-    if spec.offline(cfg):
+    if spec.offline:
         assert demos is not None
-        train, held_out = split_demos(demos, float(cfg.mode[spec.settings].holdout_fraction), int(cfg.seed),
+        train, held_out = split_demos(demos, float(m[spec.settings].holdout_fraction), nodes.seed,
                                       keep_order=nstep["n_step"] > 1)
         return Stage(spec, demo_buffer(train, batch, compact=compact, device=device, **nstep), None, terms,
                      lr, held_out.to(device))
-    per_round = spec.updates_per_round(cfg)
-    per_round = int(a.updates_per_round if per_round is None else per_round)
-    explore = make_exploration(*spec.exploration(cfg), kind=str(a.exploration), num_envs=num_envs,
+    schedule = own(spec.exploration(m), (a.eps_start, a.eps_end, a.eps_decay_frames))
+    explore = make_exploration(*schedule, kind=str(a.exploration), num_envs=num_envs,
                                **{k: a[k] for k in EXPLORATION_OPTIONS})
     explore.to(device)
+    share = float(spec.demo_share(m))
     if share > 0:
         assert demos is not None
-        buffer: Any = PriorKnowledgeBuffer(demos, capacity, share, batch, sampling=str(cfg.mode.sampling),
+        buffer: Any = PriorKnowledgeBuffer(demos, capacity, share, batch, sampling=str(m.sampling),
                                            **store, **nstep)
     else:
         buffer = agent_buffer(capacity, batch, **store, **nstep)
-    return Stage(spec, buffer, explore, terms, lr, updates_per_round=per_round)
+    return Stage(spec, buffer, explore, terms, lr, updates_per_round=int(own(spec.updates_per_round(m),
+                                                                             a.updates_per_round)))

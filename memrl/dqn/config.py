@@ -8,12 +8,13 @@ by :func:`check_train_config` so that an out-of-range value fails at start, nami
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from omegaconf import DictConfig
 
-from memrl.errors import ConfigError, UserError
-from memrl.fields import spec
-from memrl.modes import Stage1Config, Stage2Config, mode_of  # noqa: F401  (the mode B schemas)
+from memrl.errors import config_error
+from memrl.fields import check_fields, spec
+from memrl.modes import mode_of
 
 PRECISIONS = ("auto", "float32", "bfloat16")
 EXPLORATIONS = ("epsilon", "ez_greedy", "ez_speed", "speed_only", "boltzmann")  # memrl/dqn/exploration.py
@@ -53,7 +54,7 @@ class AgentConfig:
     """Final epsilon."""
     eps_decay_frames: int = spec(50_000, ge=1)
     """Env steps over which epsilon decays linearly from eps_start to eps_end."""
-    exploration: str = "epsilon"
+    exploration: str = spec("epsilon", choices=EXPLORATIONS)
     """How the acting policy explores (:mod:`memrl.dqn.exploration`): ``epsilon`` (the paper's
     epsilon-greedy), ``ez_greedy`` (a random action repeated for a zeta-distributed duration),
     ``ez_speed`` (a random speed change held so, the curvature change greedy), ``speed_only``
@@ -83,7 +84,7 @@ class AgentConfig:
     """``torch.compile`` the Q-network's forward (falls back to eager with a warning if it
     fails). Off: on this CPU it measured no faster than eager channels_last (inductor keeps the
     oneDNN convolutions), and compiling costs 10-70 s at start."""
-    precision: str = "auto"
+    precision: str = spec("auto", choices=PRECISIONS)
     """Conv trunk precision: ``float32``; ``bfloat16`` (autocast of the three convs, weights,
     FC head, Q-values and loss stay float32); ``auto``: bfloat16 where the CPU has native
     bf16 (oneDNN's check, e.g. AVX512-BF16 or AMX), else float32. Measured ~2x faster updates
@@ -99,6 +100,14 @@ class AgentConfig:
     network is a copy refreshed after every update round, so it lags one round behind the
     sequential schedule; runs stay deterministic and resume exactly. Measured by
     ``python -m memrl.bench e2e``."""
+
+    @staticmethod
+    def check(a: Any, prefix: str = "agent.") -> None:
+        """Rules across its keys: schedules that decay."""
+        _need(a.eps_end <= a.eps_start, f"{prefix}eps_start",
+              f"need 0 <= eps_end <= eps_start <= 1, got {a.eps_start} -> {a.eps_end}")
+        _need(a.temperature_end <= a.temperature_start, f"{prefix}temperature_start",
+              "need 0 < temperature_end <= temperature_start")
 
 
 @dataclass
@@ -121,75 +130,50 @@ class BufferConfig:
     """Importance-sampling exponent of prioritized replay (0: no correction, 1: full); fixed
     over the run, as Dopamine's Rainbow (0.5)."""
 
-
-class TrainConfigError(UserError, ValueError):
-    """A training config value is out of range."""
-
-
-def _need(ok: bool, key: str, message: str) -> None:
-    if not ok:
-        raise TrainConfigError(f"config '{key}': {message}")
+    @staticmethod
+    def check(b: Any, prefix: str = "buffer.") -> None:
+        """Rules across its keys: one way of choosing the agent part's items."""
+        _need(b.priority == 0 or b.crash_share == 0, f"{prefix}priority",
+              "prioritized replay and buffer.crash_share exclude each other; set one of them to 0")
 
 
 def check_train_config(cfg: DictConfig) -> None:
-    """Check values that a schema's types cannot: ranges and choices; names the bad key."""
-    from memrl.fields import check_fields
-
-    a = cfg.agent
-    spec = mode_of(cfg)  # an unknown mode.name is refused here
-    try:  # each key's range (NaN never passes)
-        check_fields(AgentConfig, a, "agent.")
-        check_fields(BufferConfig, cfg.buffer, "buffer.")
-        check_fields(spec.schema, cfg.mode, "mode.")
-    except ConfigError as err:
-        raise TrainConfigError(str(err)) from None
-    _need(a.n_step <= cfg.env.duration, "agent.n_step",
-          f"{a.n_step} steps summed is longer than an episode (env.duration={cfg.env.duration})")
-    _need(0 < a.gamma <= 1, "agent.gamma", f"must be in (0, 1], got {a.gamma}")
-    _need(a.lr > 0, "agent.lr", f"must be > 0, got {a.lr}")
-    _need(a.n_step >= 1, "agent.n_step", f"must be >= 1, got {a.n_step}")
-    _need(0 <= a.advantage_learning < 1, "agent.advantage_learning",
-          f"must be in [0, 1), got {a.advantage_learning}")
-    shaping = cfg.env.shaping
-    _need(shaping.weight == 0 or shaping.gamma == a.gamma, "env.shaping.gamma",
-          f"must equal agent.gamma ({a.gamma}) when env.shaping.weight > 0, got {shaping.gamma}: "
-          "the shaping leaves the optimal policy unchanged only with the learner's discount")
-    _need(0 <= cfg.buffer.crash_share < 1, "buffer.crash_share",
-          f"must be in [0, 1), got {cfg.buffer.crash_share}")
-    _need(0 <= cfg.buffer.priority <= 1, "buffer.priority", f"must be in [0, 1], got {cfg.buffer.priority}")
-    _need(0 <= cfg.buffer.priority_beta <= 1, "buffer.priority_beta",
-          f"must be in [0, 1], got {cfg.buffer.priority_beta}")
-    _need(cfg.buffer.priority == 0 or cfg.buffer.crash_share == 0, "buffer.priority",
-          "prioritized replay and buffer.crash_share exclude each other; set one of them to 0")
-    _need(cfg.buffer.priority == 0 or cfg.mode.get("sampling") in (None, "stratified"), "mode.sampling",
-          "prioritized replay keeps the demos' stratified share; 'proportional' would be ignored")
-    _need(str(a.precision) in PRECISIONS, "agent.precision",
-          f"must be one of {sorted(PRECISIONS)}")
-    _need(a.threads >= 0, "agent.threads", f"must be >= 0, got {a.threads}")
-    for key in ("batch_size", "target_update_interval", "train_every", "updates_per_round"):
-        _need(a[key] >= 1, f"agent.{key}", f"must be >= 1, got {a[key]}")
-    _need(0 <= a.eps_end <= a.eps_start <= 1, "agent.eps_start",
-          f"need 0 <= eps_end <= eps_start <= 1, got {a.eps_start} -> {a.eps_end}")
-    _need(a.eps_decay_frames >= 1, "agent.eps_decay_frames", "must be >= 1")
-    _need(0 <= a.augment_shift <= 20, "agent.augment_shift",
-          f"must be in [0, 20] pixels, got {a.augment_shift}")
-    _need(str(a.exploration) in EXPLORATIONS, "agent.exploration",
-          f"expected one of {', '.join(EXPLORATIONS)}, got {a.exploration!r}")
-    _need(a.ez_mu > 0, "agent.ez_mu", f"must be > 0, got {a.ez_mu}")
-    _need(a.ez_max_duration >= 1, "agent.ez_max_duration", "must be >= 1")
-    _need(0 < a.temperature_end <= a.temperature_start,
-          "agent.temperature_start", "need 0 < temperature_end <= temperature_start")
-    _need(cfg.buffer.capacity >= a.batch_size, "buffer.capacity",
-          f"must be >= agent.batch_size ({a.batch_size}), got {cfg.buffer.capacity}")
+    """The learner's nodes of a train config (``agent``, ``buffer``, ``mode``; ``env`` is
+    checked first, by its own validator): each against its schema (:func:`check_fields`: the
+    ranges on its fields, then its own cross-key ``check``), then the rules across nodes."""
+    mode = mode_of(cfg)  # an unknown mode.name is refused here
+    for schema, node, prefix in ((AgentConfig, cfg.agent, "agent."), (BufferConfig, cfg.buffer, "buffer."),
+                                 (mode.schema, cfg.mode, "mode.")):
+        check_fields(schema, node, prefix)
+    check_across_nodes(cfg, max((float(st.demo_share(cfg.mode)) for st in mode.stages if not st.offline),
+                                default=0.0))
     from memrl.data.buffer_size import check_buffer_fits
 
     check_buffer_fits(cfg)  # before anything is allocated
-    spec.check(cfg)
+
+
+def check_across_nodes(cfg: DictConfig, demo_share: float) -> None:
+    """The rules between the train config's nodes (``demo_share``: the most of the buffer its
+    mode's online stages keep for prior knowledge)."""
+    a, b = cfg.agent, cfg.buffer
+    _need(a.n_step <= cfg.env.duration, "agent.n_step",
+          f"{a.n_step} steps summed is longer than an episode (env.duration={cfg.env.duration})")
+    _need(cfg.env.shaping.weight == 0 or cfg.env.shaping.gamma == a.gamma, "env.shaping.gamma",
+          f"must equal agent.gamma ({a.gamma}) when env.shaping.weight > 0, got {cfg.env.shaping.gamma}: "
+          "the shaping leaves the optimal policy unchanged only with the learner's discount")
+    _need(b.priority == 0 or cfg.mode.get("sampling") in (None, "stratified"), "mode.sampling",
+          "prioritized replay keeps the demos' stratified share; 'proportional' would be ignored")
+    _need(b.capacity >= a.batch_size, "buffer.capacity",
+          f"must be >= agent.batch_size ({a.batch_size}), got {b.capacity}")
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")
-    share = max([float(st.demo_share(cfg)) for st in spec.stages if not st.offline(cfg)], default=0.0)
-    agent_part = int(cfg.buffer.capacity) - int(round(float(share) * int(cfg.buffer.capacity)))
+    agent_part = int(b.capacity) - int(round(demo_share * int(b.capacity)))
     n_envs = int(cfg.env.num_envs)
     _need(agent_part >= n_envs, "env.num_envs",
           f"{n_envs} envs write {n_envs} transitions per step, more than the {agent_part} the "
           "replay keeps for the agent's data; raise buffer.capacity")
+
+
+def _need(ok: bool, key: str, message: str) -> None:
+    if not ok:
+        raise config_error(key, message)

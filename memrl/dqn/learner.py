@@ -16,7 +16,7 @@ from memrl.data.priority_sampler import TD_KEY
 from memrl.dqn.augment import shift_batch
 from memrl.dqn.config import AgentConfig
 from memrl.losses import LossTerm, td_term
-from memrl.modules.qnet import QNetwork, make_q_actor
+from memrl.modules.qnet import QNetwork, acting_actor, make_q_actor
 from memrl.values import QFunctions
 
 
@@ -89,6 +89,8 @@ class Learner:
         self.actor: QValueActor = make_q_actor(pool_first=bool(cfg.pool_first), network=network)
         self.actor.to(self.device)
         self.qnet: QNetwork = self.actor.module[0].module  # the bare network inside the actor
+        self.acting_actor: QValueActor = acting_actor(self.actor)
+        """What the acting policy runs: :attr:`actor`, or a crash-risk critic's safe choice."""
         self.terms = tuple(terms) if terms is not None else (td_term(cfg, self.qnet),)
         precision = str(cfg.precision)
         # bf16 autocast is a CPU speed-up (oneDNN); on CUDA `auto` keeps float32

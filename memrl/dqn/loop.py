@@ -5,7 +5,7 @@
 new transitions, book finished episodes, checkpoint. The pieces it calls each live in their own
 module: the stages' buffers, exploration and losses (:mod:`memrl.dqn.builder`), collection
 (:mod:`memrl.dqn.collector`), the replay ratio and budgets (:mod:`memrl.dqn.schedule`),
-overlapped rounds (:mod:`memrl.dqn.overlap`), mode B's stage-1 checks (:mod:`memrl.dqn.stage1`),
+overlapped rounds (:mod:`memrl.dqn.overlap`), an offline stage's stop rule (:mod:`memrl.dqn.stage1`),
 the self-play pool (:mod:`memrl.dqn.self_play`), run records (:mod:`memrl.dqn.records`).
 """
 
@@ -29,11 +29,11 @@ from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
 from memrl.checkpoint import resume as ckpt
-from memrl.checkpoint import save_qnet, stage1_source
-from memrl.checkpoint.weights import load_weights, save_weights
+from memrl.checkpoint import save_offline, save_qnet, stage1_source
+from memrl.checkpoint.weights import load_weights
 from memrl.data.buffers import priority_sampler
 from memrl.data.priority_sampler import reprioritize
-from memrl.dqn.builder import Stage, build_stage
+from memrl.dqn.builder import Stage, StageInputs, build_stage
 from memrl.dqn.collector import Collector, EpisodeEnd, Steps
 from memrl.dqn.learner import Learner
 from memrl.dqn.overlap import RoundRunner
@@ -45,7 +45,7 @@ from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
 from memrl.modes import mode_of
-from memrl.modules.qnet import arch_of, network_for_task
+from memrl.modules.qnet import network_for_task
 from memrl.progress import drawn, progress_bar
 from memrl.stop import raise_pending, stop_requested
 
@@ -97,7 +97,8 @@ class Summary:
 
 
 class Trainer:
-    """One run of Default, mode A or mode B (both stages), on ``env.num_envs`` envs."""
+    """One run of any mode (:mod:`memrl.modes`: its stages in turn, an offline one first where it
+    has one), on ``env.num_envs`` envs."""
 
     def __init__(self, cfg: DictConfig, out_dir: Path, demos: TensorDictBase | None = None,
                  logger: Any | None = None) -> None:
@@ -124,7 +125,7 @@ class Trainer:
         self.records = RunRecords(out_dir, logger, echo=not drawn(cfg.progress))
         self.periodic = PeriodicEvaluation(cfg.eval, cfg.env, out_dir, self.records.log)
         self.counters = Counters(stage=self.spec.stages[0].name)
-        self.stage1 = Stage1Progress()
+        self.offline_progress = Stage1Progress()
         self._set_stage(self.counters.stage)
         self._acc: dict[str, list[float]] = {"loss": [], "demo": []}
         self._recent: deque[dict[str, Any]] = deque(maxlen=20)
@@ -141,7 +142,7 @@ class Trainer:
         bar = self._progress_bar()
         try:
             if self.stage.offline:
-                self.run_stage1()
+                self.run_offline()
             while not self._budget_done():
                 batches = self._due_batches()  # sampled now, before the new steps join
                 losses, steps = self.rounds.run(batches, self._collect)  # overlapped or in turn
@@ -167,16 +168,17 @@ class Trainer:
         self.save_checkpoint()
         return self._summary()
 
-    def run_stage1(self, after_update: Callable[[int], None] | None = None) -> None:
-        """Mode B stage 1 on prior knowledge alone, then the switch to stage 2.
+    def run_offline(self, after_update: Callable[[int], None] | None = None) -> None:
+        """The offline stage (mode B's stage 1) on prior knowledge alone until its stop rule
+        stops it, then the switch to the next stage.
 
         ``after_update(updates)``, when given, is called after each update, before the check
         and the switch (the stage-1 bench drives the greedy agent from it every N updates).
         """
-        checks, p = self.stage1_checks, self.stage1
+        checks, p = self.offline_checks, self.offline_progress
         assert checks is not None
         if (init := self._offline_settings.init) is not None:
-            self._stage1_from(stage1_source(str(init), self.cfg.env))
+            self._offline_from(stage1_source(str(init), self.cfg.env))
             return
         while not p.done:
             batch = self.stage.buffer.sample()
@@ -190,7 +192,7 @@ class Trainer:
                 self._log_updates()  # every check gets its row
                 self.records.stage1_check(p.updates, metrics)
                 if p.stop_reason:
-                    self._finish_stage1()
+                    self._finish_offline()
                 self.save_checkpoint()
                 if stop_requested():  # stage 1 stops at its next checkpoint
                     raise_pending()
@@ -250,11 +252,11 @@ class Trainer:
         """Build stage ``name``: its buffer, exploration and acting policy; start the learner
         on its loss terms (and a fresh optimizer when it begins a new optimisation)."""
         self.counters.stage = name
-        self.stage: Stage = build_stage(self.spec.stage(name), self.cfg, self.demos, self.num_envs,
-                                        self.device)
+        self.stage: Stage = build_stage(self.spec.stage(name), StageInputs.of(self.cfg), self.demos,
+                                        self.num_envs, self.device)
         self.learner.start_stage(self.stage.terms, self.stage.lr, fresh_optimizer)
-        self.stage1_checks = Stage1Checks(self._offline_settings, self.cfg.env, self.stage.held_out,
-                                          self.stage1) if self.stage.offline else None
+        self.offline_checks = Stage1Checks(self._offline_settings, self.cfg.env, self.stage.held_out,
+                                           self.offline_progress) if self.stage.offline else None
         self.acting: TensorDictSequential | None = None if self.stage.offline else TensorDictSequential(
             self.rounds.acting_net, self.stage.explore)
 
@@ -263,31 +265,32 @@ class Trainer:
         """The ``mode`` node of the current offline stage's stop rule (``mode.stage1``)."""
         return self.cfg.mode[self.stage.spec.settings]
 
-    def _stage1_from(self, file: Path) -> None:
-        """Stage 1 done elsewhere (``mode.stage1.init``): its weights and record, then the switch."""
+    def _offline_from(self, file: Path) -> None:
+        """The offline stage done by another run (``mode.stage1.init``): its weights and record,
+        then the switch."""
         state = load_weights(file, "stage-1 weights")  # checked again: read once more here
         self.learner.loss_module.load_state_dict(state["loss_module"])
         for key, value in state.get("stage1", {}).items():
-            setattr(self.stage1, key, value)
-        self.stage1.stop_reason = f"from {file} ({self.stage1.stop_reason or 'stage 1'})"
-        self._finish_stage1()
+            setattr(self.offline_progress, key, value)
+        p = self.offline_progress
+        p.stop_reason = f"from {file} ({p.stop_reason or 'stage 1'})"
+        self._finish_offline()
         self.save_checkpoint()
 
-    def _finish_stage1(self) -> None:
-        """Stage 1 is over: save its weights; stage 2 starts from them (online and target
-        networks, a fresh Adam at ``agent.lr``)."""
-        assert self.stage1_checks is not None
-        self.stage1_checks.finish(self.learner.loss_module)
-        path = save_weights(self.out_dir / "checkpoints" / "stage1.pt",
-                            {"loss_module": self.learner.loss_module.state_dict(),
-                             "network": arch_of(self.learner.qnet),  # what loaders rebuild
-                             "stage1": dataclasses.asdict(self.stage1)})
+    def _finish_offline(self) -> None:
+        """The offline stage is over: save its weights (:func:`save_offline`); the next stage
+        starts from them (online and target networks; a fresh Adam where it declares one)."""
+        assert self.offline_checks is not None
+        self.offline_checks.finish(self.learner.loss_module)
+        path = save_offline(self.out_dir / "checkpoints", self.learner.loss_module, self.learner.qnet,
+                            dataclasses.asdict(self.offline_progress))
         self.learner.sync_target()
-        following = self.spec.next_stage(self.counters.stage)
+        done, following = self.counters.stage, self.spec.next_stage(self.counters.stage)
         assert following is not None, "an offline stage is followed by the stage it trains for"
         self._set_stage(following.name, following.fresh_optimizer)
         self.rounds.sync()
-        log.info("stage 1 done (%s); stage 2 from %s", self.stage1.stop_reason, path)
+        log.info("offline stage %s done (%s); %s starts from %s", done,
+                 self.offline_progress.stop_reason, following.name, path)
 
     # ------------------------------------------------------------------ bookkeeping
     def _reprioritize(self, batches: list[TensorDictBase]) -> None:
@@ -357,7 +360,7 @@ class Trainer:
         state = {
             "config": ckpt.comparable(self.cfg),
             "counters": dataclasses.asdict(self.counters),
-            "stage1": dataclasses.asdict(self.stage1),
+            "stage1": dataclasses.asdict(self.offline_progress),
             "learner": self.learner.state_dict(),
             "explore": self.stage.explore.state_dict() if online else None,  # type: ignore[union-attr]
             "collector": self.collector.state_dict() if online else None,
@@ -365,7 +368,7 @@ class Trainer:
             "acc": self._acc,
             "recent": list(self._recent),
             "rng": ckpt.rng_state(),
-            "stage1_best": self.stage1_checks.best if self.stage1_checks is not None else None,
+            "stage1_best": self.offline_checks.best if self.offline_checks is not None else None,
             "wall_s": self._trained_s(time.perf_counter() - self._t_start),
         }
         agent_part = getattr(self.stage.buffer, "online_buffer", self.stage.buffer)  # not the demos
@@ -380,15 +383,15 @@ class Trainer:
         where = ckpt.find(run_dir)
         state = ckpt.load_state(where, self.cfg)
         counters = dict(state["counters"])
-        offline = self.spec.stage(counters["stage"]).offline(self.cfg)
+        offline = self.spec.stage(counters["stage"]).offline
         counters.setdefault("rounds", 0 if offline  # older format
                             else self.schedule.rounds_due(counters["frames"]))
         self.counters = Counters(**counters)
-        self.stage1 = Stage1Progress(**state["stage1"])
+        self.offline_progress = Stage1Progress(**state["stage1"])
         self.learner.load_state_dict(state["learner"])
         self._set_stage(self.counters.stage)
-        if self.stage1_checks is not None:
-            self.stage1_checks.best = state.get("stage1_best")
+        if self.offline_checks is not None:
+            self.offline_checks.best = state.get("stage1_best")
         if self.stage.explore is not None:
             self.stage.explore.load_state_dict(state["explore"])
         if (where / "buffer").exists():
@@ -429,7 +432,7 @@ class Trainer:
             episodes=c.episodes, updates=c.updates, stage=c.stage,
             mean_return_last_20=mean("return"), mean_survival_last_20=mean("survival_steps"),
             reached_target_last_20=mean("reached_target"),
-            stage1=dataclasses.asdict(self.stage1), wall_s=wall,
+            stage1=dataclasses.asdict(self.offline_progress), wall_s=wall,
             updates_per_s=(c.updates - self._updates0) / max(wall, 1e-9),
             frames_per_s=(c.frames - self._frames0) / max(wall, 1e-9),
             learner_busy=self.rounds.update_seconds / max(wall, 1e-9),

@@ -36,10 +36,10 @@ class RoundRunner:
     def __init__(self, learner: Learner, overlap: bool, threads: int) -> None:
         self.learner, self.overlap, self.threads = learner, overlap, threads
         self._pool: ThreadPoolExecutor | None = None
-        self.acting_net: torch.nn.Module = learner.actor
+        self.acting_net: torch.nn.Module = learner.acting_actor
         """The module the acting policy runs (a copy in overlap mode)."""
         if overlap:
-            self.acting_net = copy.deepcopy(learner.actor)
+            self.acting_net = copy.deepcopy(learner.acting_actor)
             for module in self.acting_net.modules():  # a copied compiled forward calls the original
                 module._compiled_call_impl = None
         self.update_seconds = 0.0
@@ -73,7 +73,7 @@ class RoundRunner:
         t0 = time.perf_counter()
         losses = [self.learner.update(b) for b in batches]
         self.update_seconds += time.perf_counter() - t0
-        self.stale = self.stale or (bool(batches) and self.acting_net is not self.learner.actor)
+        self.stale = self.stale or (bool(batches) and self.acting_net is not self.learner.acting_actor)
         return losses
 
     def state_dict(self) -> dict[str, Any]:
@@ -92,10 +92,10 @@ class RoundRunner:
     def sync(self) -> None:
         """Refresh the acting copy from the online network (overlap mode)."""
         self.stale = False
-        if self.acting_net is self.learner.actor:
+        if self.acting_net is self.learner.acting_actor:
             return
         with torch.no_grad():
-            for dst, src in zip(self.acting_net.parameters(), self.learner.actor.parameters(),
+            for dst, src in zip(self.acting_net.parameters(), self.learner.acting_actor.parameters(),
                                 strict=True):
                 dst.copy_(src)
 

@@ -10,12 +10,13 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from memrl.dqn.config import Stage1Config
 from memrl.envs.config import LaneChangeConfig
 from memrl.evaluation.jobs import module_device
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.runner import Job, run_jobs
+from memrl.modes import Stage1Config
+from memrl.modules.qnet import decision_values
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ def agreement(qnet: torch.nn.Module, held_out: TensorDictBase, chunk: int = 256)
     hits = 0
     for start in range(0, len(held_out), chunk):
         part = held_out[start:start + chunk]
-        hits += int((qnet(part["pixels"]).argmax(-1) == part["action"]).sum())
+        hits += int((decision_values(qnet, part["pixels"]).argmax(-1) == part["action"]).sum())
     return hits / len(held_out)
 
 
@@ -74,7 +75,7 @@ def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
     action changes curvature at all; ``greedy_actions``: how many different greedy actions
     the held-out states get (1: the output no longer depends on the input, a collapsed network).
     """
-    greedy = torch.cat([qnet(held_out[i:i + chunk]["pixels"]).argmax(-1)
+    greedy = torch.cat([decision_values(qnet, held_out[i:i + chunk]["pixels"]).argmax(-1)
                         for i in range(0, len(held_out), chunk)])
     demo = held_out["action"].reshape(-1)
     same_curv = greedy % 3 == demo % 3  # index = 3 * speed index + curvature index

@@ -13,32 +13,33 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from memrl.errors import UserError
+from memrl.errors import ConfigError, UserError
+from memrl.fields import check_fields, spec
 
 
 @dataclass
 class BEVConfig:
     """Bird's-eye-view crop seen by the agent (and by learned cars)."""
 
-    width: int = 84
+    width: int = spec(84, ge=8)
     """Crop width [px]; the lateral (across-road) axis."""
-    height: int = 84
+    height: int = spec(84, ge=8)
     """Crop height [px]; the longitudinal axis, driving direction pointing up."""
-    lateral_scale: float = 0.2
+    lateral_scale: float = spec(0.2, gt=0)
     """Metres per pixel across the road [m/px]: 84 px = 16.8 m, a 2-lane road (8 m) plus margins."""
-    longitudinal_scale: float = 0.8
+    longitudinal_scale: float = spec(0.8, gt=0)
     """Metres per pixel along the road [m/px]: 84 px = 67.2 m, i.e. 33.6 m ahead and behind."""
     show_target_lane: bool = True
     """Paint the target lane in its own shade: the only cue the agent has of where to go."""
-    dash_length: float = 3.0
+    dash_length: float = spec(3.0, gt=0)
     """Length of a painted lane-marking dash [m] (gaps have the same length)."""
-    path_length: float = 0.0
+    path_length: float = spec(0.0, ge=0)
     """Draw the viewing car's path for this many metres ahead at its current heading and
     curvature, a 1-px line in its own shade (0: off, the paper's picture). The curvature is
     otherwise hard to see: one 0.01 rad/m step turns the car by under a pixel's worth over
     four frames, and the scripted prior knowledge steers by it
     (``python -m memrl.bench stage1`` compares)."""
-    path_time: float = 0.0
+    path_time: float = spec(0.0, ge=0, le=10)
     """Draw EVERY car's path ahead of it at its current heading and curvature for this many
     seconds of driving, ``speed * path_time`` metres, a 1-px line in that car's shade under the
     cars (0: off; at most 10 s; not together with ``path_length``). Its length shows each car's
@@ -58,13 +59,13 @@ class BEVConfig:
 class SceneRenderConfig:
     """Full-scene picture returned by ``render()`` (``render_mode='rgb_array'``), for people."""
 
-    width: int = 120
+    width: int = spec(120, ge=8)
     """Picture width [px] (across the road): 24 m at 0.2 m/px."""
-    height: int = 500
+    height: int = spec(500, ge=8)
     """Picture height [px] (along the road, driving direction up): 100 m at 0.2 m/px."""
-    lateral_scale: float = 0.2
+    lateral_scale: float = spec(0.2, gt=0)
     """Metres per pixel across the road [m/px]."""
-    longitudinal_scale: float = 0.2
+    longitudinal_scale: float = spec(0.2, gt=0)
     """Metres per pixel along the road [m/px]."""
 
 
@@ -72,15 +73,15 @@ class SceneRenderConfig:
 class RewardConfig:
     """Weights of the named reward components (Table II); each component is 0 or 1 per step."""
 
-    collision: float = -5.0
+    collision: float = spec(-5.0, finite=True)
     """Collision with another car or with the road edge (wall)."""
-    lane_centre: float = 1.0
+    lane_centre: float = spec(1.0, finite=True)
     """Agent's centre within ``lane_centre_tolerance`` of a lane centre line."""
-    stopped: float = -1.0
+    stopped: float = spec(-1.0, finite=True)
     """Agent's speed at or below ``stopped_speed``."""
-    target_lane: float = 1.0
+    target_lane: float = spec(1.0, finite=True)
     """Agent's centre in the target lane."""
-    non_target_lane: float = -2.0
+    non_target_lane: float = spec(-2.0, finite=True)
     """Agent's centre in any other lane."""
 
 
@@ -90,11 +91,11 @@ class ShapingConfig:
     step's reward gains ``weight (risk(s) - gamma risk(s'))`` (0 after a crash), which leaves
     the task's optimal policy unchanged. Off by default; the paper's reward is Table II's."""
 
-    weight: float = 0.0
+    weight: float = spec(0.0, ge=0)
     """Weight of the potential ``Phi = -weight risk`` (0: no shaping)."""
-    horizon: float = 3.0
+    horizon: float = spec(3.0, gt=0)
     """Time to collision [s] at which the risk is 0; it grows linearly to 1 at contact."""
-    gamma: float = 0.95
+    gamma: float = spec(0.95, gt=0, le=1)
     """Discount of the shaping; must equal the learner's ``agent.gamma`` (checked at the
     start of training), or the optimal policy is no longer the task's."""
 
@@ -103,15 +104,15 @@ class ShapingConfig:
 class OpponentConfig:
     """Who drives the other cars (Sec. IV-A: constant speed, or a copy of an earlier agent)."""
 
-    type: str = "constant"
+    type: str = spec("constant", choices=("constant", "learned", "mixed"))
     """constant: straight at constant speed | learned: every car driven by a past agent |
     mixed: each car learned with probability ``learned_fraction``, else constant."""
-    learned_fraction: float = 0.5
+    learned_fraction: float = spec(0.5, ge=0, le=1)
     """mixed: probability that a car is driven by a past agent."""
     pool: list[str] = field(default_factory=list)
     """Past agents: run folders, ``final.pt`` files or glob patterns; each learned car draws
     one per episode. Needed by learned and mixed."""
-    epsilon: float = 0.0
+    epsilon: float = spec(0.0, ge=0, le=1)
     """Learned cars act epsilon-greedily with this epsilon (0: greedy)."""
 
 
@@ -119,61 +120,61 @@ class OpponentConfig:
 class LaneChangeConfig:
     """Lane-change task of the paper (Sec. IV-A) on a straight multi-lane road."""
 
-    lanes_count: int = 2
+    lanes_count: int = spec(2, ge=2)
     """Number of lanes; lane 0 is the leftmost."""
-    lane_width: float = 4.0
+    lane_width: float = spec(4.0, gt=0)
     """Lane width [m]. Road edges (walls) lie half a lane outside the outer lane centres."""
-    road_length: float = 5000.0
+    road_length: float = spec(5000.0, gt=0)
     """Length of the straight road [m]; the agent starts 500 m from its beginning."""
-    vehicle_length: float = 5.0
+    vehicle_length: float = spec(5.0, gt=0)
     """Length of every car [m]."""
-    vehicle_width: float = 2.0
+    vehicle_width: float = spec(2.0, gt=0)
     """Width of every car [m]."""
-    dt: float = 0.1
+    dt: float = spec(0.1, gt=0)
     """Duration of one action step [s]; one kinematic integration per step."""
-    duration: int = 300
+    duration: int = spec(300, ge=1)
     """Episode length [action steps]; the episode is truncated after this many steps."""
-    speed_step: float = 0.1
+    speed_step: float = spec(0.1, ge=0)
     """Speed change of the 'faster'/'slower' actions [m/s]."""
-    curvature_step: float = 0.01
+    curvature_step: float = spec(0.01, ge=0)
     """Curvature change of the 'left'/'right' actions [rad/m]."""
-    speed_limits: list[float] = field(default_factory=lambda: [0.0, 15.0])
+    speed_limits: list[float] = spec([0.0, 15.0], ge=0)
     """Clamp of the agent's speed [m/s] (min, max)."""
-    curvature_limit: float = 0.05
+    curvature_limit: float = spec(0.05, gt=0)
     """Clamp of |curvature| [rad/m]; 0.05 rad/m is a 20 m turning radius."""
-    initial_speed: list[float] = field(default_factory=lambda: [6.0, 9.0])
+    initial_speed: list[float] = spec([6.0, 9.0], ge=0)
     """Agent's initial speed drawn uniformly in this range [m/s]."""
-    initial_offset: float = 0.0
+    initial_offset: float = spec(0.0, ge=0)
     """Agent's initial lateral offset from its lane centre, uniform in [-x, x] [m] (0: on the
     centre line). With ``initial_heading`` and ``initial_curvature``, off-nominal starts that
     make a recorded driver show how it recovers (prior knowledge); off by default."""
-    initial_heading: float = 0.0
+    initial_heading: float = spec(0.0, ge=0)
     """Agent's initial heading, uniform in [-x, x] [rad] (0: along the road)."""
-    initial_curvature: float = 0.0
+    initial_curvature: float = spec(0.0, ge=0)
     """Agent's initial curvature, uniform in [-x, x] [rad/m] (0: straight)."""
     target_lane: Any = "random"
     """Target lane index, or 'random' (uniform over lanes, drawn each episode)."""
-    initial_lane: str = "random"
+    initial_lane: str = spec("random", choices=("random", "non_goal"))
     """'random': start in the target or a non-target lane with equal probability;
     'non_goal': always start in a non-target lane."""
     vehicles_count: Any = 5
     """Number of other cars: an int, or [low, high] drawn uniformly (inclusive) each episode."""
-    other_speed: list[float] = field(default_factory=lambda: [5.0, 9.0])
+    other_speed: list[float] = spec([5.0, 9.0], ge=0)
     """Speeds of other cars drawn uniformly in this range [m/s]."""
-    spawn_ahead: float = 60.0
+    spawn_ahead: float = spec(60.0, ge=0)
     """Other cars spawn at most this far ahead of the agent [m]."""
-    spawn_behind: float = 30.0
+    spawn_behind: float = spec(30.0, ge=0)
     """Other cars spawn at most this far behind the agent [m]."""
-    spawn_gap: float = 8.0
+    spawn_gap: float = spec(8.0, ge=0)
     """Minimum centre-to-centre gap between two cars of one lane at spawn, beyond one car
     length [m]; a car in the agent's lane keeps twice this gap from the agent."""
-    spawn_attempts: int = 50
+    spawn_attempts: int = spec(50, ge=1)
     """Rejection-sampling attempts per car; a car that finds no room is left out."""
     opponent: OpponentConfig = field(default_factory=OpponentConfig)
     """Who drives the other cars (a plain string is read as ``opponent.type``)."""
-    lane_centre_tolerance: float = 0.3
+    lane_centre_tolerance: float = spec(0.3, ge=0)
     """|lateral offset| from a lane centre line at which the agent counts as centred [m]."""
-    stopped_speed: float = 0.05
+    stopped_speed: float = spec(0.05, ge=0)
     """Speed at or below which the agent counts as stopped [m/s]."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Weights of the named reward components."""
@@ -183,18 +184,18 @@ class LaneChangeConfig:
     """The agent's bird's-eye-view observation."""
     scene: SceneRenderConfig = field(default_factory=SceneRenderConfig)
     """The full-scene picture for people (preview, videos)."""
-    frame_stack: int = 1
+    frame_stack: int = spec(1, ge=1)
     """Frames in the gym observation ``[frame_stack, H, W]`` (oldest first; after a reset the
     first frame repeated): 4 is the paper's observation, for gym users (SB3, CleanRL). The
     TorchRL pipeline (``make_env``) stacks frames itself and leaves this at 1."""
-    frame_stride: int = 1
+    frame_stride: int = spec(1, ge=1)
     """Steps between stacked frames, k: the stack at step t (0 at reset) holds the frames of
     steps t - (S-1)k, ..., t - k, t (S frames, oldest first), the reset frame standing in for
     steps before 0, as Atari's frame skip spaces its frames while the agent still acts every
     step here. 1: consecutive frames, the paper's observation. Every engine uses it: the gym
     stack (``frame_stack``), the TorchRL pipeline, the batched engine, the evaluation and
     deploy runners and the learned cars' own views (see :mod:`memrl.envs.stride`)."""
-    num_envs: int = 1
+    num_envs: int = spec(1, ge=1)
     """Envs the trainer steps together: 1 steps this highway-env env (the reference); N > 1
     the batched engine (:mod:`memrl.envs.batched`, the same task). A gym env is one env
     whatever this says (``gymnasium.make_vec`` takes ``num_envs`` itself)."""
@@ -230,90 +231,6 @@ def _build(cls: type, values: dict[str, Any], prefix: str) -> Any:
 
 AGENT_X = 500.0
 """Where the agent starts along the road [m] (``memrl.envs.scene`` places the scene there)."""
-
-
-def _int(ge: int) -> tuple[Any, str]:
-    def ok(v: Any) -> bool:
-        return isinstance(v, int) and not isinstance(v, bool) and v >= ge
-    ok.outside = [ge - 1]  # type: ignore[attr-defined]  # values it refuses (tests walk them)
-    return ok, f"need an int >= {ge}"
-
-
-def _num(gt: float | None = None, ge: float | None = None, le: float | None = None) -> tuple[Any, str]:
-    def ok(v: Any) -> bool:
-        return (isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-                and (gt is None or v > gt) and (ge is None or v >= ge) and (le is None or v <= le))
-    ok.outside = [math.nan, math.inf, *([gt] if gt is not None else []),  # type: ignore[attr-defined]
-                  *([ge - 1] if ge is not None else []), *([le + 1] if le is not None else [])]
-    bounds = [f"> {gt}" if gt is not None else "", f">= {ge}" if ge is not None else "",
-              f"<= {le}" if le is not None else ""]
-    return ok, "need a finite number " + " and ".join(b for b in bounds if b)
-
-
-def _pair(v: Any) -> bool:
-    return (isinstance(v, list | tuple) and len(v) == 2 and all(_num(ge=0)[0](x) for x in v)
-            and v[0] <= v[1])
-
-
-_pair.outside = [[math.nan, 1.0], [2.0, 1.0], [-1.0, 1.0], [0.0, math.inf]]  # type: ignore[attr-defined]
-_RANGE = (_pair, "expected [low, high] finite numbers with 0 <= low <= high")
-
-RULES: dict[str, tuple[Any, str]] = {
-    "lanes_count": _int(2),
-    "lane_width": _num(gt=0),
-    "road_length": _num(gt=0),
-    "vehicle_length": _num(gt=0),
-    "vehicle_width": _num(gt=0),
-    "dt": _num(gt=0),
-    "duration": _int(1),
-    "speed_step": _num(ge=0),
-    "curvature_step": _num(ge=0),
-    "speed_limits": _RANGE,
-    "curvature_limit": _num(gt=0),
-    "initial_speed": _RANGE,
-    "initial_offset": _num(ge=0),
-    "initial_heading": _num(ge=0),
-    "initial_curvature": _num(ge=0),
-    "other_speed": _RANGE,
-    "spawn_ahead": _num(ge=0),
-    "spawn_behind": _num(ge=0),
-    "spawn_gap": _num(ge=0),
-    "spawn_attempts": _int(1),
-    "lane_centre_tolerance": _num(ge=0),
-    "stopped_speed": _num(ge=0),
-    "frame_stack": _int(1),
-    "frame_stride": _int(1),
-    "num_envs": _int(1),
-    "opponent.learned_fraction": _num(ge=0, le=1),
-    "opponent.epsilon": _num(ge=0, le=1),
-    "reward.collision": _num(),
-    "reward.lane_centre": _num(),
-    "reward.stopped": _num(),
-    "reward.target_lane": _num(),
-    "reward.non_target_lane": _num(),
-    "shaping.weight": _num(ge=0),
-    "shaping.horizon": _num(gt=0),
-    "shaping.gamma": _num(gt=0, le=1),
-    "bev.width": _int(8),
-    "bev.height": _int(8),
-    "bev.lateral_scale": _num(gt=0),
-    "bev.longitudinal_scale": _num(gt=0),
-    "bev.dash_length": _num(gt=0),
-    "bev.path_length": _num(ge=0),
-    "bev.path_time": _num(ge=0, le=10),
-    "scene.width": _int(8),
-    "scene.height": _int(8),
-    "scene.lateral_scale": _num(gt=0),
-    "scene.longitudinal_scale": _num(gt=0),
-}
-"""One rule per key: (test of the value alone, what is valid). A new key is one line here;
-the checks across keys (ranges that must fit together) are :func:`_check_together`."""
-
-
-def _get(cfg: Any, key: str) -> Any:
-    for part in key.split("."):
-        cfg = getattr(cfg, part)
-    return cfg
 
 
 def max_cars_room(cfg: LaneChangeConfig) -> int:
@@ -359,8 +276,23 @@ def max_car_speed(cfg: LaneChangeConfig) -> float:
     return max(cfg.speed_limits[1], cfg.other_speed[1])
 
 
+def _pair(value: Any) -> bool:
+    """A ``[low, high]`` range (each value's own range is its field's)."""
+    return isinstance(value, list | tuple) and len(value) == 2 and value[0] <= value[1]
+
+
+def _int_ok(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
 def _check_together(cfg: LaneChangeConfig) -> None:
-    """Checks across keys: ranges that must fit together."""
+    """Checks across keys: ranges that must fit together (each key's own range was checked)."""
+    _check(_pair(cfg.speed_limits), "speed_limits",
+           f"expected [low, high] with low <= high, got {cfg.speed_limits!r}")
+    _check(_pair(cfg.initial_speed), "initial_speed",
+           f"expected [low, high] with low <= high, got {cfg.initial_speed!r}")
+    _check(_pair(cfg.other_speed), "other_speed",
+           f"expected [low, high] with low <= high, got {cfg.other_speed!r}")
     _check(cfg.vehicle_width < cfg.lane_width, "vehicle_width", "must be < lane_width")
     _check(cfg.bev.path_length == 0 or cfg.bev.path_time == 0, "bev.path_length,bev.path_time",
            f"two path cues ({cfg.bev.path_length} m of the own path, {cfg.bev.path_time} s of every "
@@ -384,29 +316,26 @@ def _check_together(cfg: LaneChangeConfig) -> None:
     _check(target == "random" or (isinstance(target, int) and not isinstance(target, bool)
                                   and 0 <= target < cfg.lanes_count),
            "target_lane", f"expected 'random' or an int in [0, {cfg.lanes_count - 1}], got {target!r}")
-    _check(cfg.initial_lane in ("random", "non_goal"), "initial_lane",
-           f"expected 'random' or 'non_goal', got {cfg.initial_lane!r}")
     count = cfg.vehicles_count
     if isinstance(count, list | tuple):
-        _check(len(count) == 2 and all(_int(0)[0](c) for c in count) and count[0] <= count[1],
+        _check(len(count) == 2 and all(_int_ok(c) for c in count) and count[0] <= count[1],
                "vehicles_count", f"expected [low, high] ints with 0 <= low <= high, got {count!r}")
     else:
-        _check(_int(0)[0](count), "vehicles_count", f"need an int >= 0, got {count!r}")
+        _check(_int_ok(count), "vehicles_count", f"need an int >= 0, got {count!r}")
     most = max(count) if isinstance(count, list | tuple) else count
     room = max_cars_room(cfg)
     _check(most <= room, "vehicles_count",
            f"{count!r}: the spawn window holds at most {room} other cars for sure (raise "
            "spawn_ahead / spawn_behind, or lower spawn_gap)")
     opp = cfg.opponent
-    _check(opp.type in ("constant", "learned", "mixed"), "opponent.type",
-           f"expected constant, learned or mixed, got {opp.type!r}")
     _check(opp.type == "constant" or len(opp.pool) > 0, "opponent.pool",
            f"opponent.type={opp.type} needs a pool of past agents (run folders or final.pt files)")
 
 
 def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> LaneChangeConfig:
     """Build a :class:`LaneChangeConfig` from a (possibly partial) dict and check every value:
-    each key alone (:data:`RULES`: finite numbers in range), then the keys together.
+    each key alone (the range on its field, :func:`memrl.fields.spec`: finite numbers in range),
+    then the keys together (:func:`_check_together`).
 
     Args:
         values: keys of :class:`LaneChangeConfig`.
@@ -421,9 +350,10 @@ def validate_env_config(values: dict[str, Any], allow: Iterable[str] = ()) -> La
     allowed = set(allow)
     cfg: LaneChangeConfig = _build(
         LaneChangeConfig, {k: v for k, v in values.items() if k not in allowed}, "")
-    for key, (ok, valid) in RULES.items():
-        value = _get(cfg, key)
-        _check(ok(value), key, f"{valid}, got {value!r}")
+    try:  # each key's range, declared on its field, as every schema's (memrl.fields)
+        check_fields(LaneChangeConfig, dataclasses.asdict(cfg))
+    except ConfigError as err:
+        raise EnvConfigError(f"env {err}") from None  # "env config '<key>': ..."
     _check_together(cfg)
     return cfg
 

@@ -63,10 +63,7 @@ def check_network(node: Any, key: str = "network") -> None:
         raise config_error(f"{key}._target_", f"{target} is not a torch.nn.Module class")
     schema = network_schema(cls)
     check_typed(schema, node, key)
-    check_fields(schema, node, f"{key}.")
-    rule = getattr(schema, "check", None)
-    if rule is not None:
-        rule(node, f"{key}.")
+    check_fields(schema, node, f"{key}.")  # ranges, then the schema's own cross-key check
 
 
 def network_schema(cls: type) -> type:

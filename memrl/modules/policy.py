@@ -22,7 +22,7 @@ from torch import nn
 from memrl.envs.lane_change import LaneChangeEnv
 from memrl.envs.stride import history_length, select_frames
 from memrl.envs.vehicles import N_ACTIONS
-from memrl.modules.qnet import QNetwork
+from memrl.modules.qnet import QNetwork, decision_values
 
 
 class StopRecording(Exception):  # noqa: N818 - a request, not an error
@@ -123,7 +123,12 @@ class GreedyPolicy(DrivingPolicy):
         return net.head(h).reshape(*batch, -1)
 
     def act_batch(self, pixels: torch.Tensor) -> torch.Tensor:
-        """Greedy actions (int64 ``[B]``, on the device) of a batch of stacks."""
+        """Greedy actions (int64 ``[B]``, on the device) of a batch of stacks: argmax Q, or a
+        crash-risk critic's safe choice (:func:`memrl.modules.qnet.decision_values`)."""
+        if getattr(self.net, "decide", None) is not None:
+            with torch.inference_mode():
+                x = pixels.to(self.device, non_blocking=True).contiguous(memory_format=torch.channels_last)
+                return decision_values(self.net, x).argmax(-1)
         return self.q_values(pixels).argmax(-1)
 
     def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:

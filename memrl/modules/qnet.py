@@ -232,6 +232,26 @@ def network_for_task(network: Any, env: Any, gamma: float) -> Any:
     return network if fill is None else fill(plain_arch(network), env, gamma)
 
 
+def decision_values(net: nn.Module, pixels: torch.Tensor) -> torch.Tensor:
+    """Values ``[..., A]`` whose argmax is ``net``'s greedy action: its ``decide`` where it has
+    one (a crash-risk critic's safe choice, :mod:`memrl.modules.risk`), else its Q-values."""
+    decide = getattr(net, "decide", None)
+    return decide(pixels) if decide is not None else net(pixels)
+
+
+def head_td_term(agent: Any, network: Any = None) -> Any:
+    """The TD term of the value head ``network`` (a ``network`` node or stored architecture, a
+    class or a built network; None: Table I), as the ``agent`` config sets it: its class's
+    ``td_term_for(agent, node)`` where its term reads the node's keys, else ``td_term(agent)``;
+    eq. (1)'s for a network that declares neither."""
+    cls = network_class(network)
+    by_node = getattr(cls, "td_term_for", None)
+    if by_node is not None:
+        node = getattr(network, "arch", network) if isinstance(network, nn.Module) else network
+        return by_node(agent, plain_arch(node))
+    return getattr(cls, "td_term", QNetwork.td_term)(agent)
+
+
 def arch_of(net: nn.Module) -> dict[str, Any]:
     """The architecture to store with ``net``'s weights (what :func:`build_qnet` rebuilds it from)."""
     arch = getattr(net, "arch", None)
@@ -247,6 +267,28 @@ def input_frames(net: nn.Module) -> int:
         conv = next((m for m in net.modules() if isinstance(m, nn.Conv2d)), None)
         frames = conv.in_channels if conv is not None else 4
     return int(frames)
+
+
+class Decision(nn.Module):
+    """A network seen through :func:`decision_values` (its parameters are ``net``'s)."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        return decision_values(self.net, pixels)
+
+
+def acting_actor(actor: QValueActor) -> QValueActor:
+    """The actor that acts as ``actor``'s network chooses (:func:`decision_values`): ``actor``
+    itself for a network without ``decide``, else a ``QValueActor`` over :class:`Decision`,
+    sharing its parameters (TorchRL's ``DQNLoss`` keeps ``actor``, whose values are the Q-values)."""
+    net = actor.module[0].module
+    if getattr(net, "decide", None) is None:
+        return actor
+    n_actions = int(getattr(net, "arch", {}).get("n_actions", N_ACTIONS))
+    return QValueActor(Decision(net), in_keys=["pixels"], spec=Categorical(n_actions, dtype=torch.int64))
 
 
 def make_q_actor(frames: int = 4, size: int = 84, pool_first: bool = True,

@@ -60,7 +60,8 @@ def offline_settings(cfg: Any) -> str | None:
     """The ``mode`` key of a run config's offline-stage settings (mode B: ``stage1``); None for
     a mode without an offline stage, or one not declared here."""
     spec = MODES.get(str(cfg.mode.get("name")))
-    return next((st.settings for st in spec.stages if st.settings is not None), None) if spec else None
+    offline = spec.offline_stage if spec else None
+    return offline.settings if offline else None
 
 
 def _pretrains(mode: object) -> bool:

@@ -84,7 +84,7 @@ def probe(cfg: Any, updates: int, every: int, out_dir: Path) -> list[dict[str, A
     from memrl.train import prior_knowledge
 
     spec = mode_of(cfg)
-    if not spec.stages[0].offline(cfg):
+    if not spec.stages[0].offline:
         raise ValueError(f"the probe takes a stage 1 on prior knowledge alone; mode {spec.name} "
                          "starts online")
     trainer = Trainer(cfg, out_dir, demos=prior_knowledge(cfg))
