@@ -99,6 +99,38 @@ def test_auto_reset_step_equals_step_then_reset(config, pool):
     assert resets > n
 
 
+@pytest.mark.parametrize("config", [{**NON_GOAL, "bev": {"path_time": 2.0}},
+                                    {"opponent": {"type": "mixed", "pool": "POOL", "epsilon": 0.2},
+                                     "vehicles_count": 3}])
+def test_step_with_reset_equals_step_then_reset(config, pool):
+    """``step(reset=ids)`` (the vector env's next-step autoreset: those envs start anew instead,
+    their first frames drawn with every other env's new frame) leaves the engine as
+    ``step()`` then ``reset(ids)``: states, generators' draws, frame stacks."""
+    if "opponent" in config:
+        config = {**config, "opponent": {**config["opponent"], "pool": pool}}
+    n, rng = 10, np.random.default_rng(1)
+    fused, split = BatchedLaneChange(config, n), BatchedLaneChange(config, n)
+    fused.reset(seeds=list(range(n)))
+    split.reset(seeds=list(range(n)))
+    ended, resets = np.zeros(n, dtype=bool), 0
+    for _ in range(80):
+        actions = torch.as_tensor(rng.integers(9, size=n))
+        ids = np.flatnonzero(ended).tolist()
+        active = torch.as_tensor(~ended)
+        a, b = fused.step(actions, active=active, reset=ids), split.step(actions, active=active)
+        split.reset(ids)
+        resets += len(ids)
+        keep = torch.as_tensor(~ended)
+        for key in ("reward", "terminated", "truncated", "collided", "reached_target"):
+            assert torch.equal(getattr(a, key)[keep], getattr(b, key)[keep]), key
+        assert torch.equal(fused.observation(), split.observation())
+        assert torch.equal(fused.state, split.state) and torch.equal(fused.steps, split.steps)
+        ended = (b.terminated | b.truncated).numpy() & ~ended
+    assert resets > n
+    with pytest.raises(BatchedEnvError, match="auto_reset or reset"):
+        fused.step(actions, auto_reset=True, reset=[0])
+
+
 def test_steady_driving_matches_the_reference_through_truncations():
     """16 seeds x 310 steps of 'keep speed and curvature' among 5 cars: rear-end crashes, and
     episodes that last the full 300 steps and are truncated, then reset."""

@@ -7,9 +7,12 @@ import math
 import numpy as np
 import pytest
 import torch
+from highway_env.utils import are_polygons_intersecting
 
 from memrl.envs.batched import BatchedLaneChange
-from memrl.envs.crash import CRASH_KINDS, NO_CRASH, classify, kind_name
+from memrl.envs.batched_physics import overlap
+from memrl.envs.crash import CRASH_KINDS, NO_CRASH, classify, classify_batch, kind_name
+from memrl.envs.render import body_corners
 from memrl.envs.vehicles import IDLE
 from tests.helpers import empty_road
 
@@ -95,6 +98,77 @@ def test_a_deep_rear_end_stays_ahead_and_the_nearest_of_two_cars_is_the_contact(
     kind, _ = classify(np.array([500.0, W, 0, 5.0, 0]),
                        np.array([[495.1, W, 0, 5.0, 0], [500.5, W - 1.9, 0, 5.0, 0]]), W, 2, L, B)
     assert kind_name(kind) == "side"
+
+
+def _polygon(row):
+    corners = body_corners(np.float64(row[0]), np.float64(row[1]), np.float64(row[2]), L, B)
+    return np.vstack([corners, corners[:1]])  # closed, as highway-env's polygon()
+
+
+def _classify_one_by_one(agent, others):
+    """The classifier written car by car on highway-env's own polygon test (its definition)."""
+    zero, best = np.zeros(2), None
+    for row in others:
+        if not are_polygons_intersecting(_polygon(agent), _polygon(row), zero, zero)[0]:
+            continue
+        dx, dy = row[0] - agent[0], row[1] - agent[1]
+        sx, sy = abs(dx) / L, abs(dy) / B
+        kind = ("ahead" if dx >= 0 else "behind") if sx >= sy else "side"
+        closing = float(np.sign(dx) * (agent[3] * np.cos(agent[2]) - row[3] * np.cos(row[2])))
+        if best is None or max(sx, sy) < best[0]:
+            best = (max(sx, sy), CRASH_KINDS.index(kind) + 1, closing)
+    if best is not None:
+        return best[1], best[2]
+    y, vy = _polygon(agent)[:4, 1], float(agent[3] * np.sin(agent[2]))
+    if y.min() < -0.5 * W:
+        return CRASH_KINDS.index("road_edge") + 1, -vy
+    if y.max() > 1.5 * W:
+        return CRASH_KINDS.index("road_edge") + 1, vy
+    return NO_CRASH, 0.0
+
+
+def test_the_batched_overlap_test_is_highway_envs_polygon_test():
+    """Pairs of bodies apart, touching and overlapping at any heading: the same decision as
+    highway-env's ``are_polygons_intersecting`` (at zero velocity), pair by pair."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    a = np.stack([rng.uniform(495, 505, n), rng.uniform(-1, 5, n), rng.uniform(-np.pi, np.pi, n)], -1)
+    b = a + np.stack([rng.uniform(-6, 6, n), rng.uniform(-3, 3, n), rng.uniform(-np.pi, np.pi, n)], -1)
+    a[:100, 2] = 0.0  # along the road: end to end and side by side, touching exactly
+    b[:100] = a[:100] + np.where(np.arange(100)[:, None] < 50, [L, 0.0, 0.0], [0.0, B, 0.0])
+    h = a[100:400, 2:3]  # at a heading: end to end, touching
+    b[100:400] = a[100:400] + np.concatenate([L * np.cos(h), L * np.sin(h), 0 * h], -1)
+    rows = lambda c: np.concatenate([c, np.zeros((n, 2))], -1)  # noqa: E731
+    got = overlap(rows(a), rows(b), L, B)
+    zero = np.zeros(2)
+    want = [are_polygons_intersecting(_polygon(p), _polygon(q), zero, zero)[0]
+            for p, q in zip(a, b, strict=True)]
+    assert got.tolist() == want
+    assert 500 < sum(want) < n - 500
+    assert overlap(torch.from_numpy(rows(a)), torch.from_numpy(rows(b)), L, B).tolist() == want
+
+
+def test_the_batched_classifier_is_the_car_by_car_one():
+    """Agents among 0-5 cars, some absent, near and touching at any heading and across the road
+    edges: the same kinds and closing speeds (exactly) as the car-by-car classifier."""
+    rng = np.random.default_rng(1)
+    m, k = 2000, 5
+    agent = np.stack([np.full(m, 500.0), rng.uniform(-2.5, 6.5, m), rng.normal(0, 0.4, m),
+                      rng.uniform(0, 15, m), np.zeros(m)], -1)
+    others = np.stack([500 + rng.uniform(-7, 7, (m, k)), rng.uniform(-2, 6, (m, k)),
+                       rng.normal(0, 0.3, (m, k)), rng.uniform(0, 15, (m, k)), np.zeros((m, k))], -1)
+    present = rng.random((m, k)) < 0.6
+    kind, closing = classify_batch(agent, others, present, W, 2, L, B)
+    want = [_classify_one_by_one(agent[i], others[i][present[i]]) for i in range(m)]
+    assert list(zip(kind.tolist(), closing.tolist(), strict=True)) == want
+    assert {int(c) for c in kind} == {NO_CRASH, *range(1, len(CRASH_KINDS) + 1)}
+    assert classify(agent[0], others[0][present[0]], W, 2, L, B) == want[0]
+    touch = overlap(np.broadcast_to(agent[:, None], others.shape), others, L, B)  # as the engine tests it
+    given = classify_batch(agent, others, present, W, 2, L, B, touch=touch)
+    assert list(zip(given[0].tolist(), given[1].tolist(), strict=True)) == want
+    none = classify_batch(agent, np.zeros((m, 0, 5)), np.zeros((m, 0), dtype=bool), W, 2, L, B)
+    assert list(zip(none[0].tolist(), none[1].tolist(), strict=True)) == [
+        _classify_one_by_one(a, []) for a in agent]
 
 
 def _crashed(records, kinds):

@@ -1,6 +1,7 @@
 """Every car's path (``bev.path_time``) as chords of its arc, each a 1-px line
 (memrl.envs.render_paths): the chords' geometry, the pixels of a line against a hand
-computation, curved paths against their true arcs, and the fixed windows of accelerators."""
+computation, curved paths against their true arcs, the fixed windows of accelerators, and
+the column runs of paths along the road against a hand computation and against their chords."""
 
 from __future__ import annotations
 
@@ -39,15 +40,16 @@ def test_chord_points_lie_on_the_arc_on_numpy_and_torch():
     k, length = rng.choice([0.0, 1e-12, 0.01, -0.05], 50), rng.uniform(0, 30, 50)
     for chords in (1, 3, 8):
         xs, ys = chord_points(x, y, h, k, length, chords)
-        assert xs.shape == ys.shape == (50, chords + 1)
+        assert xs.shape == ys.shape == (chords + 1, 50)
+        xs, ys = xs.T, ys.T
         for i in range(50):
             arc = arc_points(np.array([x[i], y[i], h[i], k[i]]), length[i] * np.arange(chords + 1) / chords)
             assert np.abs(np.stack([xs[i], ys[i]], -1) - arc).max() < 1e-9
         tx, ty = chord_points(*(torch.from_numpy(a) for a in (x, y, h, k, length)), chords)
-        assert np.abs(tx.numpy() - xs).max() < 1e-9 and np.abs(ty.numpy() - ys).max() < 1e-9
+        assert np.abs(tx.numpy().T - xs).max() < 1e-9 and np.abs(ty.numpy().T - ys).max() < 1e-9
     # straight along the road: every point on the car's line, exactly
     xs, ys = chord_points(*(np.array([v]) for v in (500.0, 4.0, 0.0, 0.0, 12.0)), 8)
-    assert ys.tolist() == [[4.0] * 9] and xs[0, -1] == 512.0
+    assert ys.T.tolist() == [[4.0] * 9] and xs[-1, 0] == 512.0
 
 
 def _paths_only(renderer: BEVRenderer, center, paths, labels, lib=np):
@@ -111,9 +113,10 @@ def test_curved_paths_are_connected_lines_within_a_pixel_of_their_arcs():
 
 
 def test_fixed_windows_of_accelerators_draw_what_the_cpu_windows_draw(monkeypatch):
-    """On an accelerator every chord takes the renderer's fixed number of steps (no host sync);
-    on the CPU as many as the longest chord needs: the same pixels, here at any heading (long
-    chords across the road) and at the highest speed."""
+    """On an accelerator every chord takes the renderer's fixed number of steps (no host sync)
+    and every path is drawn as chords; on the CPU as many as the longest chord needs, only the
+    paths that can show, and those along the road as column runs: the same pixels, here at
+    any heading (long chords across the road), along the road, and at the highest speed."""
     renderer = BEVRenderer(VIEW, 3, 4.0, path_time=2.0, max_speed=15.0, max_curvature=0.05, channels=1)
     rng = np.random.default_rng(5)
     v, c = 64, 6
@@ -121,16 +124,17 @@ def test_fixed_windows_of_accelerators_draw_what_the_cpu_windows_draw(monkeypatc
     paths = np.stack([500.0 + rng.uniform(-40, 40, (v, c)), rng.uniform(-3, 11, (v, c)),
                       rng.uniform(-np.pi, np.pi, (v, c)), rng.uniform(-0.05, 0.05, (v, c)),
                       rng.choice([0.0, 7.0, 15.0], (v, c))], -1)
+    paths[:, ::2, 2:4] = 0.0  # along the road
     labels = rng.integers(-1, 7, (v, c))
     dynamic = _paths_only(renderer, center, paths, labels, torch)
-    paint = render.paint_polylines
+    paint = render.paint_paths
     windows = []
 
     def fixed(*args):
         windows.append(args[-2])
         return paint(*args[:-2], renderer._chord_steps, args[-1])
 
-    monkeypatch.setattr(render, "paint_polylines", fixed)
+    monkeypatch.setattr(render, "paint_paths", fixed)
     assert np.array_equal(_paths_only(renderer, center, paths, labels, torch), dynamic)
     assert windows == [None]  # the CPU's windows were the ones replaced
     assert (dynamic != _paths_only(renderer, center, paths, labels * 0 - 1)).sum() > 1000
@@ -166,3 +170,63 @@ def test_all_slots_at_once_and_runs_of_slots_draw_the_same(monkeypatch):
         pictures.append(_paths_only(renderer, center, paths, labels))
     assert np.array_equal(*pictures)
     assert (pictures[0] != _paths_only(renderer, center, paths, np.full((v, c), -1))).sum() > 500
+
+
+def _along(v, rng):
+    """``v`` views, each with 6 cars straight along the road (heading and curvature 0) at any
+    speed, near and far (partly and wholly off the picture), some absent, mixed shades."""
+    center = np.stack([np.full(v, 500.0), rng.uniform(-1.0, 9.0, v)], -1)
+    c = 6
+    y = rng.choice([0.0, 4.0, 8.0], (v, c)) + rng.choice([0.0, 0.03, -1.7, 9.0], (v, c))
+    paths = np.stack([500.0 + rng.uniform(-70, 50, (v, c)), y, np.zeros((v, c)), np.zeros((v, c)),
+                      rng.choice([0.0, 5.0, 9.0, 15.0], (v, c))], -1)
+    shades = [-1, LABEL["agent"], LABEL["constant"], LABEL["learned"]]
+    labels = rng.choice(shades, (v, c), p=[0.1, 0.1, 0.6, 0.2])
+    return center, paths, labels
+
+
+def test_paths_along_the_road_are_the_column_runs_of_a_hand_computation():
+    """64 views (enough for column runs), one car each straight along the road: its column
+    floor(42 + dy / 0.2), rows from its tip's floor(42 - (dx + 2 v) / 0.8) to its own
+    floor(42 - dx / 0.8), clipped to the picture; nothing else drawn."""
+    import memrl.envs.render_paths as paths_module
+
+    renderer = BEVRenderer(VIEW, 2, 4.0, path_time=2.0, max_speed=15.0, max_curvature=0.05, channels=1)
+    rng = np.random.default_rng(11)
+    v = paths_module.MANY
+    center = np.stack([np.full(v, 500.0), np.zeros(v)], -1)
+    dx, dy = rng.uniform(-40.0, 40.0, v).round(1) + 0.05, rng.uniform(-9.0, 9.0, v).round(1) + 0.05
+    speed = rng.choice([0.0, 3.0, 7.5, 15.0], v)
+    paths = np.stack([500.0 + dx, dy, np.zeros(v), np.zeros(v), speed], -1)[:, None]
+    drawn = (_paths_only(renderer, center, paths, np.full((v, 1), LABEL["constant"]))
+             != _paths_only(renderer, center, paths, np.full((v, 1), -1)))
+    for i in range(v):
+        col = math.floor(42 + dy[i] / 0.2)
+        top, bottom = math.floor(42 - (dx[i] + 2 * speed[i]) / 0.8), math.floor(42 - dx[i] / 0.8)
+        rows = range(max(top, 0), min(bottom, 83) + 1)
+        expected = {(r, col) for r in rows} if 0 <= col < 84 else set()
+        assert set(zip(*np.nonzero(drawn[i]), strict=True)) == expected, i
+    assert drawn.sum() > 500
+
+
+def test_column_runs_draw_what_the_chords_draw(monkeypatch):
+    """Many views of cars along the road among curved and turned ones, the later slots' paths
+    over the earlier ones: the column runs (with the paths that cannot show left out) give the
+    chords' pixels exactly, on numpy and torch."""
+    import memrl.envs.render_paths as paths_module
+
+    renderer = BEVRenderer(VIEW, 3, 4.0, path_time=2.0, max_speed=15.0, max_curvature=0.05, channels=1)
+    rng = np.random.default_rng(12)
+    center, paths, labels = _along(300, rng)
+    turned = rng.random(paths.shape[:2]) < 0.3
+    paths[..., 2] = np.where(turned, rng.normal(0, 0.3, turned.shape), 0.0)
+    paths[..., 3] = np.where(turned, rng.choice([0.0, 0.02, -0.05], turned.shape), 0.0)
+    paths[:, 3:, :2] = paths[:, :3, :2] + [3.0, 0.0]  # paths over others: the draw order shows
+    pictures = {}
+    for many in (paths_module.MANY, 10 ** 9):  # column runs, then chords only
+        monkeypatch.setattr(paths_module, "MANY", many)
+        for lib in (np, torch):
+            pictures[many, lib] = _paths_only(renderer, center, paths, labels, lib)
+    first = next(iter(pictures.values()))
+    assert all(np.array_equal(first, p) for p in pictures.values())
+    assert (first != _paths_only(renderer, center, paths, np.full(labels.shape, -1))).sum() > 3000

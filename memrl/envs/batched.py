@@ -32,7 +32,7 @@ from memrl.envs.config import (
     validate_env_config,
 )
 from memrl.envs.controllers import Opponents, make_opponents
-from memrl.envs.crash import NO_CRASH, classify_rows
+from memrl.envs.crash import NO_CRASH, classify_batch
 from memrl.envs.render import LABEL, BEVRenderer, View, body_corners
 from memrl.envs.reward import AgentState, components, weighted_sum
 from memrl.envs.risk import risk, shaping_reward
@@ -202,6 +202,7 @@ class BatchedLaneChange:
         self._on_cpu = dev.type == "cpu"
         self._arrays = {k: v.numpy() for k, v in self._tensors.items()} if self._on_cpu else self._tensors
         self._diag = float(np.sqrt(cfg.vehicle_length ** 2 + cfg.vehicle_width ** 2))
+        self._body = (cfg.vehicle_length, cfg.vehicle_width)
 
     # ---------------------------------------------------------------------------- reset
     def reset(self, env_ids: Sequence[int] | torch.Tensor | None = None,
@@ -274,9 +275,10 @@ class BatchedLaneChange:
         b["car_fresh"][at] = True
 
     # ----------------------------------------------------------------------------- step
-    def step(self, actions: Any, active: torch.Tensor | None = None, auto_reset: bool = False) -> StepOut:
+    def step(self, actions: Any, active: torch.Tensor | None = None, auto_reset: bool = False,
+             reset: Sequence[int] | None = None) -> StepOut:
         """One action step of every env (call :meth:`reset` on finished ones before the next,
-        or pass ``auto_reset``).
+        or pass ``auto_reset``, or ``reset`` them in the next step).
 
         Args:
             actions: ``[N]`` action indices.
@@ -288,7 +290,13 @@ class BatchedLaneChange:
                 every env's new frame; the finished episodes' last observations are in
                 ``StepOut.final_observation`` (rows ``StepOut.reset_ids``), and
                 :meth:`observation` gives the new episodes' first.
+            reset: envs (not ``active``) to reset instead, as :meth:`reset` right after the
+                step (same scenes; their outcomes in ``StepOut`` are of no episode), their
+                first frames drawn in the same call as every other env's new frame (not
+                together with ``auto_reset``).
         """
+        if reset and auto_reset:
+            raise BatchedEnvError("step(): pass auto_reset or reset, not both")
         a = check_actions(actions, self.num_envs, self.device)
         # Learned cars look before anyone moves; a view shows positions and headings (and the
         # viewer's own path), which the actions below do not change yet: all cars act at once.
@@ -305,12 +313,12 @@ class BatchedLaneChange:
         physics.move(b["state"], cfg.dt)
         b["steps"] += 1
         before = b["crashed"].copy() if self._on_cpu else b["crashed"].clone()
-        hit = self._agent_collides()
+        hit, touch = self._agent_collides()
         b["crashed"] |= hit.numpy() if self._on_cpu else hit
         lo, hi = physics.lateral_extent(b["state"][:, 0], cfg.vehicle_length, cfg.vehicle_width)
         b["crashed"] |= (lo < -0.5 * w) | (hi > (cfg.lanes_count - 0.5) * w)
         b["reached"] |= physics.inside_target(lo, hi, b["target_lane"], w)
-        self._classify_crashes(b["crashed"] & ~before)
+        self._classify_crashes(b["crashed"] & ~before, touch)
         self._head = (self._head + 1) % self.history
         comps, on_target = self._components(b)
         reward = weighted_sum(comps, cfg.reward)
@@ -322,6 +330,9 @@ class BatchedLaneChange:
                       truncated=new(truncated), collided=new(crashed), on_target_lane=new(on_target),
                       reached_target=new(b["reached"]), crash_kind=self.crash_kind.clone(),
                       closing_speed=self.closing_speed.clone())
+        if reset:  # new episodes before the frames are drawn: their first frames in the same call
+            idx, scenes = self._draw_scenes([int(i) for i in reset], None)
+            self._install(idx, scenes)
         views = self._agent_views(b["state"], b["present"], b["target_lane"], b["is_learned"])
         done: list[int] = []
         if auto_reset:
@@ -329,6 +340,8 @@ class BatchedLaneChange:
             done = (np.flatnonzero(ended) if self._on_cpu else torch.nonzero(ended).flatten()).tolist()
         if not done:
             self._render_into(self._head, views)
+            if reset:
+                self._first_frames(idx, self._frames[self._head, idx])
             return out
         # the finished envs' last frames and their new scenes' first frames in one call: the
         # new ones land in the scratch pictures that follow the ring's newest slot
@@ -348,19 +361,26 @@ class BatchedLaneChange:
         return risk(b["state"], b["present"], cfg.lane_width, cfg.lanes_count, cfg.vehicle_length,
                     cfg.vehicle_width, cfg.shaping.horizon)
 
-    def _classify_crashes(self, new: Any) -> None:
+    def _classify_crashes(self, new: Any, touch: Any) -> None:
         """Kind and closing speed of the crashes of envs ``new`` (bool ``[N]``), this step's
-        state (:func:`memrl.envs.crash.classify`, as the reference env's ``info``)."""
+        state (:func:`memrl.envs.crash.classify`, as the reference env's ``info``), given which
+        cars touch each agent (``touch [N, C - 1]``, of :meth:`_agent_collides`)."""
         ids = np.flatnonzero(new) if self._on_cpu else torch.nonzero(new).flatten().cpu().numpy()
         if len(ids) == 0:
             return
-        cfg = self.cfg
-        at = torch.as_tensor(ids, device=self.device)
-        state, present = self.state[at].cpu().numpy(), self.present[at].cpu().numpy()
-        for row, i in enumerate(ids.tolist()):
-            kind, closing = classify_rows(state[row], present[row], cfg.lane_width, cfg.lanes_count,
-                                          cfg.vehicle_length, cfg.vehicle_width)
-            self.crash_kind[i], self.closing_speed[i] = kind, closing
+        cfg, b = self.cfg, self._arrays  # numpy views on CPU
+        at = ids if self._on_cpu else torch.as_tensor(ids, device=self.device)
+        state, present = b["state"][at], b["present"][at]
+        if not self._on_cpu:
+            state, present = state.cpu().numpy(), present.cpu().numpy()
+        touching = touch[at] if self._on_cpu else touch[at].cpu().numpy()
+        kind, closing = classify_batch(state[:, 0], state[:, 1:], present[:, 1:], cfg.lane_width,
+                                       cfg.lanes_count, *self._body, touch=touching)
+        if self._on_cpu:
+            b["crash_kind"][at], b["closing_speed"][at] = kind, closing
+        else:
+            self.crash_kind[at] = torch.as_tensor(kind, device=self.device)
+            self.closing_speed[at] = torch.as_tensor(closing, device=self.device)
 
     def state_dict(self) -> dict[str, Any]:
         """Everything that determines the engine's future (copies; tensors on its device): car
@@ -378,13 +398,16 @@ class BatchedLaneChange:
         [rad/m], lane, target_lane, rewards (the components by name, as ``StepOut.components``),
         collided, on_target_lane, reached_target, crash_kind, closing_speed (of the episode's
         crash, as set at its step; not part of :meth:`state_dict`)."""
-        comps, on_target = self._components(self._tensors)
-        agent, cfg = self.state[:, 0], self.cfg
-        return {"speed": agent[:, SPEED], "curvature": agent[:, CURVATURE],
-                "lane": physics.lane(agent, cfg.lane_width, cfg.lanes_count).long(),
-                "target_lane": self.target_lane, "rewards": comps, "collided": self.crashed.clone(),
-                "on_target_lane": on_target, "reached_target": self.reached.clone(),
-                "crash_kind": self.crash_kind.clone(), "closing_speed": self.closing_speed.clone()}
+        comps, on_target = self._components(self._arrays)  # numpy views on CPU, else the tensors
+        agent, cfg = self._arrays["state"][:, 0], self.cfg
+        lane = physics.lane(agent, cfg.lane_width, cfg.lanes_count)
+        rewards: Any = self._as_tensors(comps)  # (name -> tensor)
+        return {"speed": self.state[:, 0, SPEED], "curvature": self.state[:, 0, CURVATURE],
+                "lane": torch.from_numpy(lane.astype(np.int64)) if self._on_cpu else lane.long(),
+                "target_lane": self.target_lane, "rewards": rewards,
+                "collided": self.crashed.clone(), "on_target_lane": self._new_tensor(on_target),
+                "reached_target": self.reached.clone(), "crash_kind": self.crash_kind.clone(),
+                "closing_speed": self.closing_speed.clone()}
 
     def _components(self, b: dict[str, Any]) -> tuple[dict[str, Any], Any]:
         """The reward components of the arrays ``b`` (numpy or tensors) by name, as new float64
@@ -411,6 +434,8 @@ class BatchedLaneChange:
         s, k = self.frame_stack, self.frame_stride
         order = [(self._head - k * (s - 1 - j)) % self.history for j in range(s)]
         if env_ids is None:
+            if self._frames_np is not None:  # numpy's copy is several times cheaper here
+                return torch.from_numpy(np.stack([self._frames_np[k] for k in order], axis=1))
             return torch.stack([self._frames[k] for k in order], dim=1)
         if self._frames_np is not None:
             picked = self._frames_np[np.array(order)[:, None], env_ids.numpy()[None, :]]  # [S, K, H, W]
@@ -421,47 +446,27 @@ class BatchedLaneChange:
         """The last frame of every env ``[N, H, W]`` (a view of the ring)."""
         return self._frames[self._head]
 
-    def _corners(self, cars: Any) -> Any:
-        """Body corners ``[..., 4, (x, y)]`` of cars ``[..., 5]`` (the reference env's formula;
-        numpy arrays or tensors)."""
-        return body_corners(cars[..., X], cars[..., Y], cars[..., HEADING], self.cfg.vehicle_length,
-                            self.cfg.vehicle_width)
-
-    def _agent_collides(self) -> torch.Tensor:
+    def _agent_collides(self) -> tuple[torch.Tensor, Any]:
         """Agent against every other car: highway-env's separating-axis test on the bodies,
-        after its distance pre-check (``utils.are_polygons_intersecting`` at zero velocity)."""
+        after its distance pre-check (``utils.are_polygons_intersecting`` at zero velocity):
+        whether each agent touches a car ``[N]``, and which ``[N, C - 1]`` (numpy on CPU)."""
         agent, others = self.state[:, :1], self.state[:, 1:]
         if others.shape[1] == 0:
-            return torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+            none = torch.zeros(others.shape[:2], dtype=torch.bool, device=self.device)
+            return none.any(-1), none.numpy() if self._on_cpu else none
         if self.device.type == "cpu":  # numpy (cheaper calls), the separating-axis test on close pairs
             state, present = self.state.numpy(), self.present.numpy()
             # the reference's own pre-check: np.linalg.norm of the centre offsets
             close = np.linalg.norm(state[:, 1:, :2] - state[:, :1, :2], axis=-1) <= self._diag
             env_i, car_i = np.nonzero(close & present[:, 1:])
-            hit = np.zeros(self.num_envs, dtype=bool)
-            hit[env_i[self._overlap(state[env_i, 0], state[env_i, car_i + 1])]] = True
-            return torch.from_numpy(hit)
+            pairs = np.zeros(close.shape, dtype=bool)
+            on = physics.overlap(state[env_i, 0], state[env_i, car_i + 1], *self._body)
+            pairs[env_i[on], car_i[on]] = True
+            return torch.from_numpy(pairs.any(-1)), pairs
         # every pair: fixed shapes, no host sync
         close = torch.linalg.vector_norm(others[..., :2] - agent[..., :2], dim=-1) <= self._diag
-        return (close & self.present[:, 1:] & self._overlap(agent.expand_as(others), others)).any(-1)
-
-    def _overlap(self, first: Any, second: Any) -> Any:
-        """Whether car bodies ``[..., 5]`` (numpy arrays or tensors) overlap: highway-env's
-        ``are_polygons_intersecting`` at zero velocity (the 4 edge normals of each body;
-        touching counts)."""
-        xp: Any = np if isinstance(first, np.ndarray) else torch
-        both = self._corners(xp.stack([first, second]))  # [2, ..., 4, 2] (a, b)
-        nxt = [1, 2, 3, 0]  # each corner's next, around the body
-        a, b = both[0], both[1]
-        edges = xp.concatenate([a[..., nxt, :] - a, b[..., nxt, :] - b], -2)  # [..., 8, 2]
-        nx, ny = -edges[..., 1], edges[..., 0]  # [..., 8 edges]
-        norm = xp.sqrt(nx * nx + ny * ny)
-        nx, ny = (nx / norm)[..., None], (ny / norm)[..., None]  # [..., 8 axes, 1]
-        proj = both[..., None, :, 0] * nx + both[..., None, :, 1] * ny  # [2, ..., 8 axes, 4 corners]
-        low, high = xp.amin(proj, -1), xp.amax(proj, -1)
-        (min_a, min_b), (max_a, max_b) = low, high
-        gap = xp.where(min_a < min_b, min_b - max_a, min_a - max_b)
-        return (gap <= 0).all(-1)
+        touch = close & self.present[:, 1:] & physics.overlap(agent.expand_as(others), others, *self._body)
+        return touch.any(-1), touch
 
     # --------------------------------------------------------------------------- frames
     def _agent_views(self, state: Any, present: Any, target: Any, learned: Any) -> tuple[Any, ...]:

@@ -73,3 +73,24 @@ def lane(agent: Any, lane_width: float, lanes_count: int) -> Any:
     """Lane holding each agent's centre (clipped to the road), as float64."""
     x_ = ops(agent)
     return x_.clip(x_.floor(agent[..., Y] / lane_width + 0.5), 0, lanes_count - 1)
+
+
+def overlap(first: Any, second: Any, length: float, width: float) -> Any:
+    """Whether car bodies ``[..., 5]`` (numpy arrays or tensors, broadcast alike) overlap:
+    highway-env's ``utils.are_polygons_intersecting`` at zero velocity (the 4 edge normals of
+    each body; touching counts), for many pairs at once."""
+    # Hand-written: highway-env's test takes one pair of polygons per call.
+    xp: Any = np if isinstance(first, np.ndarray) else torch
+    x, y, heading = (xp.stack([first[..., i], second[..., i]]) for i in (X, Y, HEADING))
+    both = body_corners(x, y, heading, length, width)
+    nxt = [1, 2, 3, 0]  # each corner's next, around the body
+    a, b = both[0], both[1]  # [..., 4, 2]
+    edges = xp.concatenate([a[..., nxt, :] - a, b[..., nxt, :] - b], -2)  # [..., 8, 2]
+    nx, ny = -edges[..., 1], edges[..., 0]  # [..., 8 edges]
+    norm = xp.sqrt(nx * nx + ny * ny)
+    nx, ny = (nx / norm)[..., None], (ny / norm)[..., None]  # [..., 8 axes, 1]
+    proj = both[..., None, :, 0] * nx + both[..., None, :, 1] * ny  # [2, ..., 8 axes, 4 corners]
+    low, high = xp.amin(proj, -1), xp.amax(proj, -1)
+    (min_a, min_b), (max_a, max_b) = low, high
+    gap = xp.where(min_a < min_b, min_b - max_a, min_a - max_b)
+    return (gap <= 0).all(-1)

@@ -32,24 +32,19 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from highway_env.utils import are_polygons_intersecting
 
+from memrl.envs.batched_physics import overlap
 from memrl.envs.render import body_corners
 
 CRASH_KINDS = ("ahead", "behind", "side", "road_edge")
 """Kinds of collision; code ``k + 1`` in the engines' integer arrays (0: no crash)."""
 NO_CRASH = 0
+_CODE = {kind: i + 1 for i, kind in enumerate(CRASH_KINDS)}
 
 
 def kind_name(code: int) -> str:
     """The kind of an integer code (``""`` for :data:`NO_CRASH`)."""
     return "" if int(code) == NO_CRASH else CRASH_KINDS[int(code) - 1]
-
-
-def _polygon(row: np.ndarray, length: float, width: float) -> np.ndarray:
-    """The closed body polygon ``[5, 2]`` (first corner repeated), as highway-env's ``polygon()``."""
-    corners = body_corners(np.float64(row[0]), np.float64(row[1]), np.float64(row[2]), length, width)
-    return np.vstack([corners, corners[:1]])
 
 
 def classify(agent: np.ndarray, others: np.ndarray, lane_width: float, lanes_count: int,
@@ -64,37 +59,45 @@ def classify(agent: np.ndarray, others: np.ndarray, lane_width: float, lanes_cou
 
     Returns ``(NO_CRASH, 0.0)`` when nothing touches (not a crash state).
     """
-    agent = np.asarray(agent, dtype=np.float64)
-    others = np.asarray(others, dtype=np.float64).reshape(-1, 5)
-    vx_a = agent[3] * np.cos(agent[2])
-    own = _polygon(agent, length, width)
-    best: tuple[float, int, float] | None = None  # (scaled distance, code, closing speed)
-    zero = np.zeros(2)
-    for row in others:
-        if not are_polygons_intersecting(own, _polygon(row, length, width), zero, zero)[0]:
-            continue
-        dx, dy = row[0] - agent[0], row[1] - agent[1]
-        sx, sy = abs(dx) / length, abs(dy) / width
-        if sx >= sy:
-            code = CRASH_KINDS.index("ahead" if dx >= 0 else "behind") + 1
-        else:
-            code = CRASH_KINDS.index("side") + 1
-        closing = float(np.sign(dx) * (vx_a - row[3] * np.cos(row[2])))
-        if best is None or max(sx, sy) < best[0]:
-            best = (max(sx, sy), code, closing)
-    if best is not None:
-        return best[1], best[2]
-    y = own[:4, 1]
-    vy = float(agent[3] * np.sin(agent[2]))
-    if y.min() < -0.5 * lane_width:  # the edge on the low-y side
-        return CRASH_KINDS.index("road_edge") + 1, -vy
-    if y.max() > (lanes_count - 0.5) * lane_width:
-        return CRASH_KINDS.index("road_edge") + 1, vy
-    return NO_CRASH, 0.0
+    others = np.asarray(others, dtype=np.float64).reshape(1, -1, 5)
+    present = np.ones(others.shape[:2], dtype=bool)
+    agent = np.asarray(agent, dtype=np.float64).reshape(1, 5)
+    kind, closing = classify_batch(agent, others, present, lane_width, lanes_count, length, width)
+    return int(kind[0]), float(closing[0])
 
 
-def classify_rows(state: Any, present: Any, lane_width: float, lanes_count: int, length: float,
-                  width: float) -> tuple[int, float]:
-    """:func:`classify` of one env's car slots ``[C, 5]`` (slot 0 the agent) and presence ``[C]``."""
-    state, present = np.asarray(state), np.asarray(present, dtype=bool)
-    return classify(state[0], state[1:][present[1:]], lane_width, lanes_count, length, width)
+def classify_batch(agent: Any, others: Any, present: Any, lane_width: float, lanes_count: int, length: float,
+                   width: float, touch: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`classify` of M crashes at once: kind codes ``[M]`` (int64) and closing speeds
+    ``[M]`` (float64) of the agents' rows ``[M, 5]`` among the other cars' slots ``[M, K, 5]``,
+    of which those ``present [M, K]`` count (numpy arrays; the reference env passes one row).
+    ``touch [M, K]``: which of them touch the agent, when the caller has tested it already
+    (the batched engine's collision test: :func:`memrl.envs.batched_physics.overlap`)."""
+    agent = np.asarray(agent, dtype=np.float64).reshape(-1, 5)
+    others = np.asarray(others, dtype=np.float64).reshape(len(agent), -1, 5)
+    present = np.asarray(present, dtype=bool).reshape(others.shape[:2])
+    if touch is not None:
+        touch = present & np.asarray(touch, dtype=bool).reshape(present.shape)
+    elif others.shape[1]:
+        touch = present & overlap(np.broadcast_to(agent[:, None], others.shape), others, length, width)
+    else:
+        touch = present.copy()
+    dx, dy = others[..., 0] - agent[:, None, 0], others[..., 1] - agent[:, None, 1]
+    sx, sy = abs(dx) / length, abs(dy) / width
+    code = np.where(sx >= sy, np.where(dx >= 0, _CODE["ahead"], _CODE["behind"]), _CODE["side"])
+    vx_a = agent[:, 3] * np.cos(agent[:, 2])
+    closing = np.sign(dx) * (vx_a[:, None] - others[..., 3] * np.cos(others[..., 2]))
+    # the contact: the touching car whose centre is nearest in body-scaled units (the first of equals)
+    nearest = np.argmin(np.where(touch, np.maximum(sx, sy), np.inf), -1) if others.shape[1] else 0
+    rows = np.arange(len(agent))
+    hit = touch.any(-1)
+    # no car touches: a road edge crossed (the agent's lateral speed toward it), else no crash
+    y = body_corners(agent[:, 0], agent[:, 1], agent[:, 2], length, width)[..., 1]
+    vy = agent[:, 3] * np.sin(agent[:, 2])
+    low, high = y.min(-1) < -0.5 * lane_width, y.max(-1) > (lanes_count - 0.5) * lane_width
+    edge = np.where(low | high, _CODE["road_edge"], NO_CRASH)
+    edge_closing = np.where(low, -vy, np.where(high, vy, 0.0))
+    if not others.shape[1]:
+        return edge.astype(np.int64), edge_closing
+    return (np.where(hit, code[rows, nearest], edge).astype(np.int64),
+            np.where(hit, closing[rows, nearest], edge_closing))

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from memrl.envs.render_paths import chord_count, chord_points, paint_polylines
+from memrl.envs.render_paths import chord_count, paint_paths
 from memrl.envs.vehicles import CurvatureVehicle
 
 PALETTE: dict[str, tuple[int, int, int]] = {
@@ -141,6 +141,37 @@ class _Ops:
 
     def arange(self, n: int, device: torch.device) -> Any:
         return torch.arange(n, device=device) if self.is_torch else np.arange(n)
+
+    def nonzero(self, x: Any) -> tuple[Any, ...]:
+        """Indices of the true elements of ``x``, one array per axis, in C order."""
+        return torch.nonzero(x, as_tuple=True) if self.is_torch else np.nonzero(x)
+
+    def searchsorted(self, sorted_: Any, values: Any) -> Any:
+        """Where ``values`` would go in the ascending ``sorted_`` (the first place)."""
+        return torch.searchsorted(sorted_, values) if self.is_torch else np.searchsorted(sorted_, values)
+
+    def flip0(self, x: Any) -> Any:
+        """``x`` reversed along its first axis."""
+        return x.flip(0) if self.is_torch else x[::-1]
+
+    def transpose(self, x: Any) -> Any:
+        """A 2-D ``x`` transposed (a view)."""
+        return x.T
+
+    def segment_max(self, x: Any, bounds: list[int]) -> Any:
+        """The largest element of each run ``x[bounds[i]:bounds[i + 1]]`` (-1 where empty)."""
+        if not self.is_torch:
+            lo = np.asarray(bounds[:-1])
+            full = np.diff(bounds) > 0
+            out = np.full(len(lo), -1.0, dtype=x.dtype)
+            out[full] = np.maximum.reduceat(x, lo[full])
+            return out
+        return torch.stack([x[a:b].amax() if b > a else x.new_tensor(-1.0)
+                            for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+
+    def size(self, x: Any) -> int:
+        """Elements of ``x``."""
+        return x.numel() if self.is_torch else x.size
 
     def empty_u8(self, n: int, device: torch.device) -> Any:
         return torch.empty(n, dtype=torch.uint8, device=device) if self.is_torch else np.empty(n, np.uint8)
@@ -386,18 +417,11 @@ class BEVRenderer:
         curvature over ``speed * path_time`` metres, as a few chords, each a 1-px line in its
         car's shade, slot after slot (one shade per write: later cars' paths over earlier ones,
         as the cars)."""
-        v, k = self.view, self._consts[x_]
         if car_label.shape[1] == 0:
             return
-        path, car_label = x_.slot_major(path), x_.slot_major(car_label)  # [C, V, 5], [C, V]
-        rel = path[..., :2] - center  # [C, V, 2] from the view centre [m]
-        length = path[..., 4] * self.path_time  # [m]
-        dx, dy = chord_points(rel[..., 0], rel[..., 1], path[..., 2], path[..., 3], length, self._chords)
-        col = 0.5 * v.width + x_.f32(dy) / v.lateral_scale  # continuous pixel coordinates, as the cars'
-        row = 0.5 * v.height - x_.f32(dx) / v.longitudinal_scale
         dynamic = not x_.is_torch or self.device.type == "cpu"  # else fixed shapes: no host sync
-        paint_polylines(x_, flat, base, col, row, car_label >= 0, values[x_.clip(car_label, 0, None)],
-                        v.height, v.width, None if dynamic else self._chord_steps, k["chord_i"])
+        paint_paths(x_, flat, base, center, path, car_label, values, self.view, self.path_time, self._chords,
+                    None if dynamic else self._chord_steps, self._consts[x_]["chord_i"])
 
     def _paint_cars(self, x_: _Ops, flat: Any, base: Any, center: Any, cars: Any, car_label: Any,
                     values: Any) -> None:

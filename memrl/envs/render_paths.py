@@ -12,6 +12,12 @@ in that row); and the pixel holding the path's end, its tip: where the car will 
 in the joint's row (column) lies within half a pixel of the joint, so the chords of a path join
 into one 8-connected line.
 
+Cost: a path straight along the road (heading and curvature 0: every constant-speed car) is
+one column of pixels, the rows from its car's to its tip's; with many paths to draw
+(:data:`MANY`, on the CPU) those are drawn as such runs, the others as chords, and only the
+paths that can reach their picture at all: the same pixels as chords everywhere
+(``tests/test_render_paths.py``), at a fraction of the arithmetic.
+
 Hand-written (no library rasterizes many small lines into many pictures at once): the same
 arithmetic on numpy arrays and torch tensors (the renderer's two paths), slot after slot in
 draw order (later cars' paths over earlier ones, as the cars).
@@ -26,8 +32,14 @@ import numpy as np
 import torch
 
 SMALL = 1 << 15
-"""Steps of all slots' chords at most that :func:`paint_polylines` takes in one pass (more: per
-run of slots with equal windows); the same pixels either way."""
+"""Steps of all chords (rows of all column runs) at most that :func:`paint_paths` takes in one
+pass (more: per run of layers with equal windows); the same pixels either way."""
+MANY = 64
+"""Paths (views x car slots) from which :func:`paint_paths` draws only those that can show and
+those along the road as column runs (on the CPU); the same pixels either way."""
+Steps = dict[int, list[tuple[Any, int, int]]]
+"""Per layer (run of car slots drawn in one write): offsets ``[paths, ...]`` in the pictures'
+buffer (the spare element: none) of the pixels of paths ``lo:hi``."""
 
 
 def chord_count(max_length: float, max_curvature: float, tolerance: float) -> int:
@@ -38,90 +50,208 @@ def chord_count(max_length: float, max_curvature: float, tolerance: float) -> in
 
 
 def chord_points(x: Any, y: Any, heading: Any, curvature: Any, length: Any, chords: int) -> tuple[Any, Any]:
-    """x and y ``[..., K + 1]`` [m] of the points at arc lengths ``length * j / K`` along the
+    """x and y ``[K + 1, ...]`` [m] of the points at arc lengths ``length * j / K`` along the
     arcs that cars at ``(x, y)`` with ``heading`` and ``curvature`` drive (arrays ``[...]``,
     numpy or torch; ``length`` [m]). Chord j runs at heading ``h + k l (j + 1/2)`` and is
     ``l sinc(k l / 2)`` long (``l = length / K``): the heading turns by ``k l`` from chord to
     chord (a rotation, no further sines); a straight path's chords all run at its heading."""
-    xp: Any = torch if isinstance(x, torch.Tensor) else np
+    torch_ = isinstance(x, torch.Tensor)
+    xp: Any = torch if torch_ else np
     step = length / chords  # arc length of a chord [m]
     turn = curvature * step  # heading change per chord [rad]
     chord = step * xp.sinc(turn / (2 * math.pi))  # numpy's and torch's sinc: sin(pi u) / (pi u)
-    c, s = xp.cos(heading + 0.5 * turn), xp.sin(heading + 0.5 * turn)
+    # x and y side by side: the chord's direction (c, s) turns to (c cw - s sw, s cw + c sw)
+    direction = xp.stack([xp.cos(heading + 0.5 * turn), xp.sin(heading + 0.5 * turn)])
     cw, sw = xp.cos(turn), xp.sin(turn)
-    xs, ys = [x], [y]
-    for _ in range(chords):
-        x, y = x + chord * c, y + chord * s
-        xs.append(x)
-        ys.append(y)
-        c, s = c * cw - s * sw, s * cw + c * sw
-    return xp.stack(xs, -1), xp.stack(ys, -1)
+    across = xp.stack([-sw, sw])  # times the swapped (s, c)
+    points = xp.empty((chords + 1, 2, *direction.shape[1:]), dtype=direction.dtype,
+                      **({"device": direction.device} if torch_ else {}))
+    points[0, 0], points[0, 1] = x, y
+    for j in range(chords):
+        xp.add(points[j], chord * direction, out=points[j + 1])
+        if j + 1 < chords:
+            direction = direction * cw + (direction.flip(0) if torch_ else direction[::-1]) * across
+    return points[:, 0], points[:, 1]
 
 
-def paint_polylines(x_: Any, flat: Any, base: Any, col: Any, row: Any, ok: Any, shade: Any, height: int,
-                    width: int, steps: int | None, index_i: Any) -> None:
-    """Paint polylines as 1-px DDA lines (module doc), slot after slot.
+def paint_paths(x_: Any, flat: Any, base: Any, center: Any, path: Any, label: Any, values: Any, view: Any,
+                path_time: float, chords: int, steps: int | None, index_i: Any) -> None:
+    """Paint every car's path, slot after slot (later slots' paths over earlier ones).
 
     Args:
         x_: the renderer's array operations (numpy or torch).
         flat: the pictures' 1-D uint8 buffer, its last element spare.
         base: ``[V]`` offset of each picture in ``flat``.
-        col, row: ``[C, V, P]`` float32 continuous pixel coordinates of each slot's and view's
-            polyline vertices (slot-major: slot 0 drawn first).
-        ok: ``[C, V]`` whether that polyline is drawn.
-        shade: ``[C, V]`` the value written.
-        height, width: picture size [px].
+        center: ``[V, 2]`` world point at each picture's centre [m].
+        path: ``[V, C, 5]`` (x, y, heading, curvature, speed) of the cars.
+        label: ``[V, C]`` each car's shade index (-1: no car).
+        values: the value written for each shade index.
+        view: the pictures' size and scales.
+        path_time: [s]; each path is ``speed * path_time`` long.
+        chords: chords per path.
         steps: pixels per chord (fixed shapes: no host sync); None: as many as the longest
             chord needs (CPU).
-        index_i: float32 ``arange`` at least as long as any chord's steps.
+        index_i: float32 ``arange`` at least as long as a picture's side and any chord's steps.
     """
-    n_slots, n_points = col.shape[0], col.shape[-1]
-    # per chord [C, V * K]
-    c0, c1 = col[..., :-1].reshape(n_slots, -1), col[..., 1:].reshape(n_slots, -1)
-    r0, r1 = row[..., :-1].reshape(n_slots, -1), row[..., 1:].reshape(n_slots, -1)
-    by_row = abs(r1 - r0) >= abs(c1 - c0)  # step along rows (else along columns)
-    a0, a1 = x_.where(by_row, r0, c0), x_.where(by_row, r1, c1)  # the major coordinate
-    b0, b1 = x_.where(by_row, c0, r0), x_.where(by_row, c1, r1)  # the minor one
-    lo, hi = x_.minimum(a0, a1), x_.maximum(a0, a1)
-    span = a1 - a0
-    slope = (b1 - b0) / x_.where(span == 0, 1.0, span)  # |slope| <= 1: at most 1 px per step
-    rows = x_.f32(by_row)  # 1 where the chord steps along rows: exact integer arithmetic below
-    n_minor = height + (width - height) * rows
-    stride_major, stride_minor = 1 + (width - 1) * rows, width + (1 - width) * rows
-    # step i of a chord: the centre line of major pixel first + i, up to its last
-    drawn = x_.repeat(ok.reshape(-1), n_points - 1).reshape(n_slots, -1)
-    first = x_.clip(x_.floor(lo), 0.0, None) + 0.5
-    last = x_.where(drawn, x_.minimum(x_.floor(hi), width + (height - width) * rows - 1), -1.0) + 0.5
-    offset = -0.5 * stride_major  # [px] in its picture = centre * stride_major + j * stride_minor + offset
-    chord_base = x_.repeat(base, n_points - 1)  # [V * K]
-    spare = flat.shape[0] - 1
-    # the pixel of each path's end, its tip: [C, V]
-    ti, tj = x_.floor(row[..., -1]), x_.floor(col[..., -1])
-    inside = (ti >= 0) & (ti < height) & (tj >= 0) & (tj < width) & ok
-    tips = x_.where(inside, x_.i64(ti * width + tj) + base, spare)
-    # the steps [S, n, V * K] of runs of slots that take as many (fresh large arrays cost page
-    # faults, many small ones a call each): all slots at once while that is small
-    if steps is None:  # as many as each slot's longest chord needs
-        widths = [int(w) + 1 for w in x_.amax(last - first, 1).tolist()]
-        if n_slots * max(widths) * first.shape[1] <= SMALL:
-            widths = [max(widths)] * n_slots
-    else:
-        widths = [steps] * n_slots
-    start = 0
-    while start < n_slots:
+    n_views, n_slots = label.shape
+    spare, parts = flat.shape[0] - 1, []
+    if steps is None and n_views * n_slots >= MANY:
+        length = path[..., 4] * path_time  # [V, C] [m]
+        # a path lies within its length of its car: those farther off the picture draw nothing
+        reach_x = 0.5 * view.height * view.longitudinal_scale + 1.0 + length
+        reach_y = 0.5 * view.width * view.lateral_scale + 1.0 + length
+        ok = ((label >= 0) & (abs(path[..., 0] - center[:, None, 0]) <= reach_x)
+              & (abs(path[..., 1] - center[:, None, 1]) <= reach_y))
+        along = ok & (path[..., 2] == 0) & (path[..., 3] == 0)  # straight along the road
+        # consecutive slots of the same shade in every view are one layer: where their paths
+        # cross, either order paints the same
+        by_slot = x_.slot_major(label)
+        same = (by_slot[1:] == by_slot[:-1]).all(1).tolist()
+        layers = [0, *(c for c in range(1, n_slots) if not same[c - 1])]
+        starts = x_.asarray([*layers, n_slots], like=label)
+        for chosen in (along, ok & ~along):
+            slot_i, view_i = x_.nonzero(x_.transpose(chosen))  # slot-major: in draw order
+            if len(view_i):
+                bounds = x_.searchsorted(slot_i, starts).tolist()  # each layer's paths
+                rows, at = path[view_i, slot_i], (center[view_i], base[view_i])  # [M, 5], their views
+                if chosen is along:
+                    pixels = _column_runs(x_, rows, *at, view, path_time, chords, spare, bounds)
+                else:
+                    pixels = _chord_lines(x_, rows, *at, None, view, path_time, chords, spare, bounds, None,
+                                          index_i)
+                parts.append((pixels, values[label[view_i, slot_i]]))
+    else:  # every (slot, view) pair, slot-major, the absent masked
+        layers = list(range(n_slots))
+        rows = x_.slot_major(path).reshape(-1, 5)  # [C * V, 5]
+        shown = x_.slot_major(label).reshape(-1)
+        dev = base.device if x_.is_torch else None
+        view_i = x_.arange(n_slots * n_views, dev) % n_views
+        bounds = [c * n_views for c in range(n_slots + 1)]
+        pixels = _chord_lines(x_, rows, center[view_i], base[view_i], shown >= 0, view, path_time, chords,
+                              spare, bounds, steps, index_i)
+        parts.append((pixels, values[x_.clip(shown, 0, None)]))
+    for c in range(len(layers)):  # in draw order
+        for pixels, shade in parts:
+            for index, lo, hi in pixels.get(c, ()):  # index [paths lo:hi, ...]
+                if hi - lo == 1:
+                    flat[index] = shade[lo]
+                else:
+                    flat[index.reshape(-1)] = x_.repeat(shade[lo:hi], x_.size(index[0]))
+
+
+def _passes(x_: Any, need: Any, bounds: list[int], per_step: int) -> list[tuple[int, int, int]]:
+    """Runs ``(first layer, end layer, steps)`` of layers drawn in one pass, for lines (column
+    runs or chords) that need ``need + 1`` steps ``[M]`` (``bounds``: each layer's lines;
+    ``per_step``: elements per line and step): all layers at the most steps any needs while
+    that is small (fresh large arrays cost page faults, many small ones a call each), else runs
+    of layers with equal needs."""
+    n_layers = len(bounds) - 1
+    if bounds[-1] == 0:
+        return []
+    most = int(x_.amax(need, 0)) + 1
+    if most * bounds[-1] * per_step <= SMALL:
+        return [(0, n_layers, most)]
+    widths = [int(w) + 1 for w in x_.segment_max(need, bounds).tolist()]
+    out, start = [], 0
+    while start < n_layers:
         end = start + 1
-        while end < n_slots and widths[end] == widths[start]:
+        while end < n_layers and widths[end] == widths[start]:
             end += 1
-        n, group = widths[start], slice(start, end)
-        if n > 0:
-            centre = first[group, None] + index_i[:n, None]
-            t = x_.minimum(x_.maximum(centre, lo[group, None]), hi[group, None])  # the nearest chord point
-            j = x_.floor(b0[group, None] + (t - a0[group, None]) * slope[group, None])  # exact at the start
-            draw = (centre <= last[group, None]) & (j >= 0) & (j < n_minor[group, None])
-            local = centre * stride_major[group, None] + j * stride_minor[group, None] + offset[group, None]
-            index = x_.where(draw, x_.i64(local) + chord_base, spare)
-        for c in range(start, end):
-            flat[tips[c]] = shade[c]
-            if n > 0:
-                flat[index[c - start]] = x_.repeat(shade[c], n_points - 1)  # [n, V * K] <- [V * K]
+        out.append((start, end, widths[start]))
         start = end
+    return out
+
+
+def _split(out: Steps, index: Any, bounds: list[int], start: int, end: int) -> None:
+    """Hand each layer in ``start:end`` its rows of ``index`` (paths ``bounds[start]:bounds[end]``)."""
+    first = bounds[start]
+    for c in range(start, end):
+        lo, hi = bounds[c], bounds[c + 1]
+        if hi > lo:
+            out.setdefault(c, []).append((index[lo - first: hi - first], lo, hi))
+
+
+def _column_runs(x_: Any, rows: Any, center: Any, base: Any, view: Any, path_time: float, chords: int,
+                 spare: int, bounds: list[int]) -> Steps:
+    """The pixels of the paths of cars straight along the road (heading and curvature 0),
+    ``rows [M, 5]``, in their pictures (centred at ``center [M, 2]``, at ``base [M]`` in the
+    buffer; ``bounds``: each layer's paths): each a run of rows in one column, the pixels its
+    chords' DDA lines and its tip hold."""
+    rel = rows[:, :2] - center
+    # the tip summed chord by chord, as chord_points does: the same tip row
+    tip, step = rel[:, 0], rows[:, 4] * path_time / chords
+    for _ in range(chords):
+        tip = tip + step
+    lon = view.longitudinal_scale
+    col = x_.floor(0.5 * view.width + x_.f32(rel[:, 1]) / view.lateral_scale)
+    top = x_.clip(x_.floor(0.5 * view.height - x_.f32(tip) / lon), 0.0, None)
+    bottom = x_.clip(x_.floor(0.5 * view.height - x_.f32(rel[:, 0]) / lon), None, view.height - 1.0)
+    # the rows of each run after its top (< 0: none)
+    last = x_.where((col >= 0) & (col < view.width), bottom - top, -1.0)
+    start = x_.i64(top * view.width + col) + base
+    out: Steps = {}
+    for first, end, m in _passes(x_, last, bounds, 1):
+        lo, hi = bounds[first], bounds[end]
+        i = x_.arange(m, base.device if x_.is_torch else None)
+        index = x_.where(i <= last[lo:hi, None], start[lo:hi, None] + i * view.width, spare)  # [paths, m]
+        _split(out, index, bounds, first, end)
+    return out
+
+
+def _chord_lines(x_: Any, rows: Any, center: Any, base: Any, ok: Any, view: Any, path_time: float,
+                 chords: int, spare: int, bounds: list[int], steps: int | None, index_i: Any) -> Steps:
+    """The pixels of the paths of cars ``rows [M, 5]`` in their pictures (as
+    :func:`_column_runs`; ``ok [M]``: drawn, None: all) as chords, each a 1-px DDA line (module
+    doc), and their tips: ``steps`` per chord, or (None) as many as the layer's longest chord
+    needs (``index_i``: as :func:`paint_paths`)."""
+    height, width = view.height, view.width
+    rel = rows[:, :2] - center
+    xs, ys = chord_points(rel[:, 0], rel[:, 1], rows[:, 2], rows[:, 3], rows[:, 4] * path_time, chords)
+    # continuous pixel coordinates (row, col) [2, M, K + 1], as the cars'
+    scale = x_.asarray([view.longitudinal_scale, view.lateral_scale], like=index_i)
+    pixel = x_.f32(x_.stack([xs.T, ys.T], 0)) / scale[:, None, None]
+    pixel = x_.asarray([0.5 * height, 0.5 * width], like=index_i)[:, None, None] + pixel * x_.asarray(
+        [-1.0, 1.0], like=index_i)[:, None, None]
+    # per chord [M, K]: the major axis (rows, or columns where it runs more across)
+    p0, p1 = pixel[..., :-1], pixel[..., 1:]
+    delta = abs(p1 - p0)
+    by_row = delta[0] >= delta[1]
+    ab0 = x_.where(by_row, p0, x_.flip0(p0))  # (major, minor) coordinate of its start
+    ab1 = x_.where(by_row, p1, x_.flip0(p1))
+    a0, b0 = ab0[0], ab0[1]
+    lo, hi = x_.minimum(a0, ab1[0]), x_.maximum(a0, ab1[0])
+    span = ab1 - ab0
+    slope = span[1] / x_.where(span[0] == 0, 1.0, span[0])  # |slope| <= 1: at most 1 px per step
+    side = x_.asarray([width, 1.0, height], like=index_i)  # float32: exact small integers below
+    stride_major = x_.where(by_row, side[0], side[1])
+    stride_minor = (width + 1) - stride_major
+    if height == width:
+        n_minor, end = width, width - 1.0
+    else:
+        n_minor, end = x_.where(by_row, side[0], side[2]), x_.where(by_row, side[2] - 1, side[0] - 1)
+    # step i of a chord: the centre line of major pixel first + i, up to its last
+    first = x_.clip(x_.floor(lo), 0.0, None) + 0.5
+    last = (x_.clip(x_.floor(hi), None, end) if height == width else x_.minimum(x_.floor(hi), end)) + 0.5
+    if ok is not None:
+        last = x_.where(ok[:, None], last, -1.0)
+    offset = x_.f64(base)[:, None] - 0.5 * stride_major  # pixel at centre * major + j * minor + offset
+    # the pixel of each path's end, its tip
+    tip = x_.floor(pixel[..., -1])  # [2, M]
+    inside = (tip[0] >= 0) & (tip[0] < height) & (tip[1] >= 0) & (tip[1] < width)
+    if ok is not None:
+        inside = inside & ok
+    tips = x_.where(inside, x_.i64(tip[0] * width + tip[1]) + base, spare)
+    out: Steps = {c: [(tips[lo_:hi_], lo_, hi_)] for c, (lo_, hi_) in enumerate(zip(bounds[:-1], bounds[1:],
+                                                                                 strict=True)) if hi_ > lo_}
+    passes = ([(0, len(bounds) - 1, steps)] if bounds[-1] else []) if steps is not None else \
+        _passes(x_, (last - first).reshape(-1), [b * chords for b in bounds], 1)
+    for start, stop, n in passes:
+        part, i = slice(bounds[start], bounds[stop]), index_i[:n]
+        centre = first[part, :, None] + i  # [paths, K, n]
+        t = x_.minimum(x_.maximum(centre, lo[part, :, None]), hi[part, :, None])  # the nearest chord point
+        j = x_.floor(b0[part, :, None] + (t - a0[part, :, None]) * slope[part, :, None])  # exact at the start
+        draw = (centre <= last[part, :, None]) & (j >= 0) & (j < (n_minor if height == width else
+                                                                    n_minor[part, :, None]))
+        local = centre * stride_major[part, :, None] + j * stride_minor[part, :, None] + offset[part, :, None]
+        _split(out, x_.i64(x_.where(draw, local, spare)), bounds, start, stop)
+    return out

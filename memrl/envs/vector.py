@@ -76,14 +76,12 @@ class LaneChangeVectorEnv(VectorEnv):
         if not self._was_reset:
             raise ResetNeeded("Cannot call env.step() before calling env.reset()")
         actions = np.asarray(actions)
-        out = self.engine.step(actions, active=torch.as_tensor(~self._autoreset))
+        ids = np.flatnonzero(self._autoreset)  # finished at the last step: reset instead
+        out = self.engine.step(actions, active=torch.as_tensor(~self._autoreset), reset=ids.tolist())
         reward = out.reward.cpu().numpy()
         terminated = out.terminated.cpu().numpy()
         truncated = out.truncated.cpu().numpy()
-        if self._autoreset.any():
-            ids = np.flatnonzero(self._autoreset)
-            self.engine.reset(ids.tolist())
-            reward[ids], terminated[ids], truncated[ids] = 0.0, False, False
+        reward[ids], terminated[ids], truncated[ids] = 0.0, False, False
         self._autoreset = terminated | truncated
         return self._obs(), reward, terminated, truncated, self._info()
 
