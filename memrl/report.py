@@ -211,6 +211,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     from memrl.evaluation.crashes import crash_section
     from memrl.evaluation.results import find_results
     from memrl.evaluation.session import is_complete
+    from memrl.evaluation.sight_tables import sight_section
 
     check_report(cfg)
     out = Path(out_dir or cfg.paths.output_dir)
@@ -232,6 +233,7 @@ def report(cfg: DictConfig, out_dir: Path | None = None) -> ReportFiles:
     diffs = stats.differences(results, [list(p) for p in cfg.comparisons], scfg)
     md = tables.markdown(rows, diffs, scfg.confidence) + partial_note(partial)
     md += "\n" + "\n".join(crash_section([results], scfg))
+    md += "\n" + "\n".join(sight_section([results], scfg))
     files = ReportFiles(out / "table3.md", out / "table3.csv", out / "differences.csv",
                         out / "report.json", markdown=md)
     files.table_md.write_text(md)

@@ -146,6 +146,9 @@ def test_bench_eval_times_both_runners_on_the_same_episodes(compose_cfg, tmp_pat
         assert row["today_runner"]["env_steps"] == row["engine_runner"]["env_steps"]
         assert row["ratio"] == pytest.approx(row["today_runner"]["wall_s"] / row["engine_runner"]["wall_s"])
         assert row["engine_runner"]["forward_samples"] == row["engine_runner"]["env_steps"]
+        rec = row["engine_runner_recorded"]  # the same episodes, each step's Q-values kept
+        assert row["recorded_same_records"] is True and rec["traces"] == 6 and rec["summarize_s"] >= 0
+        assert row["record_cost"] == pytest.approx(rec["wall_s"] / row["engine_runner"]["wall_s"])
 
 
 def test_recording_and_the_deploy_baseline_drive_the_greedy_policy_as_the_evaluation_does():

@@ -187,10 +187,11 @@ class InlinePool:
     def __exit__(self, *exc) -> bool:
         return False
 
-    def submit(self, fn, *args):
+    def submit(self, fn, *args, **kwargs):
         self.pieces += 1
         future: Future = Future()
-        future.set_result(fn(*pickle.loads(pickle.dumps(args))))
+        args, kwargs = pickle.loads(pickle.dumps((args, kwargs)))
+        future.set_result(fn(*args, **kwargs))
         return future
 
 
@@ -201,6 +202,13 @@ def test_work_split_over_workers_comes_back_whole_and_in_order(monkeypatch):
         actor = make()
         assert run_jobs(actor, _jobs(), workers=3, batch=2).records == run_jobs(actor, _jobs()).records
     assert sum(len(j.episodes) for j in runner.split(_jobs(), 8)) == 12
+    # the recorded Q-values come back from the workers too, in the records' order
+    split = run_jobs(actor, _jobs(), workers=3, batch=2, engine=False, record=True)
+    whole = run_jobs(actor, _jobs(), engine=False, record=True)
+    assert [(t.initial_lane, t.episode) for t in split.traces] == \
+        [(r.initial_lane, r.episode) for r in whole.records]
+    for a, b in zip(split.traces, whole.traces, strict=True):
+        np.testing.assert_allclose(a.q, b.q, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.slow

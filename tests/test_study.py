@@ -452,6 +452,9 @@ def test_the_command_line_runs_a_study(tmp_path):
     md = (folder / "report.md").read_text()
     assert "| Default | 1 |" in md and "| random | 1 |" in md
     assert (folder / "study.log").is_file() and "python -m memrl.study study.dir=" in md
+    sight = md[md.index("## Does the learner see its crash coming"):].split("\n## ")[0].splitlines()
+    assert any(line.startswith("| Default | non-goal |") for line in sight)
+    assert not any(line.startswith("| random |") for line in sight)  # the random policy has no Q-values
 
 
 VARIANTS = "{paths:['env.bev.path_time=2'],plain:['env.bev.path_time=0']}"

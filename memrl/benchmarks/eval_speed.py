@@ -8,6 +8,12 @@ On CPU that forward (~19 MFLOP per sample, 0.4-0.5 ms on one thread) bounds the 
 ``ratio_bound_by_forward`` is today's time over the engine runner's forward time alone.
 With ``idle_bias > 0`` the network favours keeping speed and curvature, so episodes last
 about as long as a trained agent's instead of ending in a crash after a dozen steps.
+
+``engine_runner_recorded`` is the engine runner again as the protocol evaluation of a trained
+run drives it: with ``record`` (each step's Q-values, actions and rewards kept) and the
+crash-sight summary made from them (:func:`memrl.evaluation.crash_sight.summarize`, timed in
+``summarize_s`` and counted in its ``wall_s``); ``record_cost`` is its wall time over the plain
+engine runner's.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import torch
 
 from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import IDLE
+from memrl.evaluation.crash_sight import summarize
 from memrl.evaluation.engine_runner import torch_threads
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
@@ -53,6 +60,15 @@ class TimedGreedyActor(GreedyActor):
         self.samples += len(pixels)
         return out
 
+    def act_values(self, pixels: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        start = time.perf_counter()
+        out = super().act_values(pixels)
+        if out[0].device.type == "cuda":
+            torch.cuda.synchronize(out[0].device)
+        self.seconds += time.perf_counter() - start
+        self.samples += len(pixels)
+        return out
+
     def act(self, slots: Sequence[int], envs: Sequence[Any], pixels: np.ndarray) -> np.ndarray:
         start = time.perf_counter()
         if self.todays_forward:
@@ -76,15 +92,21 @@ def fresh_qnet(seed: int, idle_bias: float = 0.0) -> QNetwork:
 
 
 def _time(net: QNetwork, jobs: list[Job], engine: bool, gym_batch: int, engine_batch: int | None,
-          device: torch.device, threads: int) -> tuple[dict[str, Any], list[Any]]:
+          device: torch.device, threads: int, record: bool = False) -> tuple[dict[str, Any], list[Any]]:
     actor = TimedGreedyActor(net, todays_forward=not engine)
     start = time.perf_counter()
     with torch_threads(threads):
         res = run_jobs(actor, jobs, workers=threads, batch=gym_batch, engine=engine, device=device,
-                       engine_batch=engine_batch)
+                       engine_batch=engine_batch, record=record)
+        extra = {}
+        if record:
+            before = time.perf_counter()
+            summarize(res.traces, 0.95, int(jobs[0].env["duration"]))
+            extra = {"summarize_s": time.perf_counter() - before, "traces": len(res.traces)}
     wall = time.perf_counter() - start
     episodes = len(res.records)
-    return {"wall_s": wall, "episodes_per_s": episodes / wall, "env_steps": sum(r.steps for r in res.records),
+    return {**extra, "wall_s": wall, "episodes_per_s": episodes / wall,
+            "env_steps": sum(r.steps for r in res.records),
             "forward_s": actor.seconds, "forward_samples": actor.samples,
             "forward_ms_per_sample": 1e3 * actor.seconds / max(1, actor.samples),
             "without_forward_s": wall - actor.seconds}, res.records
@@ -94,7 +116,10 @@ def _one(net: QNetwork, jobs: list[Job], gym_batch: int, engine_batch: int | Non
          threads: int) -> dict[str, Any]:
     today, ref = _time(net, jobs, False, gym_batch, engine_batch, torch.device("cpu"), threads)
     batched, ours = _time(net, jobs, True, gym_batch, engine_batch, device, threads)
+    recorded, kept = _time(net, jobs, True, gym_batch, engine_batch, device, threads, record=True)
     return {"today_runner": today, "engine_runner": batched, "same_records": ours == ref,
+            "engine_runner_recorded": recorded, "recorded_same_records": kept == ours,
+            "record_cost": recorded["wall_s"] / batched["wall_s"],
             "ratio": today["wall_s"] / batched["wall_s"],
             "ratio_without_forward": today["without_forward_s"] / batched["without_forward_s"],
             # the most any runner could gain with this network: today's time over the forward alone

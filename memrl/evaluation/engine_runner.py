@@ -21,6 +21,7 @@ from memrl.envs.batched import BatchedLaneChange, StepOut, resolve_device
 from memrl.envs.config import EnvConfigError, env_config_dict, validate_env_config
 from memrl.envs.crash import kind_name
 from memrl.envs.vehicles import IDLE
+from memrl.evaluation.crash_sight import EpisodeTrace
 from memrl.evaluation.jobs import Actor, Job, JobResult, torch_threads
 from memrl.evaluation.protocol import EpisodeRecord, closing_or_none
 
@@ -54,7 +55,40 @@ class _Lane:
         self.steps = torch.zeros(n, dtype=torch.long, device=device)
         self.active = torch.zeros(n, dtype=torch.bool, device=device)
         """Envs driving an episode that counts."""
+        self.trace: dict[str, torch.Tensor] = {}
+        """With ``record``: per env and step of its episode, the outputs acted on (``q``
+        ``[n, duration, A]``, ``risk``), the action and the reward; made at the first
+        :meth:`keep_step`."""
         self.fill(range(n))
+
+    def keep_step(self, actions: torch.Tensor, outputs: dict[str, torch.Tensor],
+                  reward: torch.Tensor) -> None:
+        """Write this step's row of :attr:`trace` for the active envs (before ``steps`` counts
+        it): ``actions`` and ``outputs`` hold one row per active env, in env order."""
+        idx = torch.nonzero(self.active).flatten()
+        if not self.trace:
+            n, length, dev = self.engine.num_envs, int(self.engine.cfg.duration), self.engine.device
+            self.trace = {key: torch.zeros((n, length, *v.shape[1:]), dtype=torch.float32, device=dev)
+                          for key, v in outputs.items() if key in ("q", "risk")}
+            self.trace["action"] = torch.zeros((n, length), dtype=torch.long, device=dev)
+            self.trace["reward"] = torch.zeros((n, length), dtype=torch.float32, device=dev)
+        t = self.steps[idx]
+        for key in ("q", "risk"):
+            if key in self.trace:
+                self.trace[key][idx, t] = outputs[key].to(self.trace[key])
+        self.trace["action"][idx, t] = actions
+        self.trace["reward"][idx, t] = reward[idx].float()
+
+    def traces(self, ids: list[int], collided: list[bool]) -> list[EpisodeTrace]:
+        """The recorded steps of the episodes that just ended in envs ``ids``."""
+        if not self.trace:
+            return []
+        rows = {key: v[ids].cpu().numpy() for key, v in self.trace.items()}
+        steps = self.steps[ids].tolist()
+        return [EpisodeTrace(self.job.initial_lane, self.index[i], rows["q"][k, :n],
+                             rows["action"][k, :n], rows["reward"][k, :n], bool(c),
+                             rows["risk"][k, :n] if "risk" in rows else None)
+                for k, (i, n, c) in enumerate(zip(ids, steps, collided, strict=True))]
 
     def fill(self, ids: Sequence[int]) -> None:
         """Start the next queued episodes in envs ``ids``; the ones left over go idle."""
@@ -95,7 +129,7 @@ class _Lane:
 
 def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None = None,
                        device: torch.device | str = "cpu", frame_stack: int = 4, threads: int = 1,
-                       on_done: Callable[[int], object] | None = None) -> JobResult:
+                       on_done: Callable[[int], object] | None = None, record: bool = False) -> JobResult:
     """Run the jobs' episodes on batched engines; records in the order they finish.
 
     Args:
@@ -106,23 +140,35 @@ def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None =
         frame_stack: frames per observation.
         threads: torch CPU threads for the run.
         on_done: called with the number of episodes finished at each step that finishes some.
+        record: keep each episode's Q-values, actions and rewards (``JobResult.traces``;
+            ``gives_values`` actors only).
     """
     if not actor.tensor_policy:
         raise TypeError(f"{type(actor).__name__} acts through the env; the engine runs tensor_policy actors")
     dev = resolve_device(device)
     actor.to(dev)
+    record = record and actor.gives_values
     result = JobResult()
     with torch_threads(threads):
         lanes = [_Lane(job, batch, dev, frame_stack) for job in jobs if job.episodes]
         while live := [lane for lane in lanes if bool(lane.active.any())]:
             pixels = [lane.engine.observation()[lane.active] for lane in live]
-            actions = actor.act_pixels(torch.cat(pixels) if len(pixels) > 1 else pixels[0]).to(dev)
+            batch_px = torch.cat(pixels) if len(pixels) > 1 else pixels[0]
+            outputs: dict[str, torch.Tensor] = {}
+            if record:
+                actions, outputs = actor.act_values(batch_px)
+                actions = actions.to(dev)
+            else:
+                actions = actor.act_pixels(batch_px).to(dev)
             offset = 0
             for lane, px in zip(live, pixels, strict=True):
+                part = slice(offset, offset + len(px))
                 chosen = torch.full((lane.engine.num_envs,), IDLE, dtype=torch.long, device=dev)
-                chosen[lane.active] = actions[offset:offset + len(px)]
+                chosen[lane.active] = actions[part]
                 offset += len(px)
                 out = lane.engine.step(chosen, active=lane.active)
+                if record:
+                    lane.keep_step(actions[part], {k: v[part] for k, v in outputs.items()}, out.reward)
                 lane.ret += torch.where(lane.active, out.reward, 0.0)
                 lane.steps += lane.active.long()
                 done = (out.terminated | out.truncated) & lane.active
@@ -130,6 +176,8 @@ def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None =
                 if ids:
                     records = lane.finish(ids, out)
                     result.records += records
+                    if record:
+                        result.traces += lane.traces(ids, [r.collided for r in records])
                     lane.fill(ids)
                     if on_done is not None:
                         on_done(len(records))

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.evaluation.crash_sight import EpisodeTrace
 from memrl.evaluation.protocol import EpisodeRecord
 from memrl.stop import Interrupted
 
@@ -36,6 +37,9 @@ class Actor(ABC):
     tensor_policy: bool = False
     """Acts from a batch of pixels alone (:meth:`act_pixels`, no env object, no per-episode
     state): :func:`run_jobs` then runs it on the batched engine."""
+    gives_values: bool = False
+    """Can hand out the network outputs it acts on (:meth:`act_values`): the runners' ``record``
+    then keeps them per step (:class:`~memrl.evaluation.crash_sight.EpisodeTrace`)."""
 
     def begin(self, slot: int, env: LaneChangeEnv, seed: int) -> None:  # noqa: B027
         """A new episode starts in ``slot`` (after the env's reset with ``seed``)."""
@@ -47,6 +51,12 @@ class Actor(ABC):
     def act_pixels(self, pixels: torch.Tensor) -> torch.Tensor:
         """Actions (int64 ``[B]``) of uint8 stacks ``[B, 4, H, W]`` (``tensor_policy`` actors)."""
         raise NotImplementedError(f"{type(self).__name__} acts through the env (act)")
+
+    def act_values(self, pixels: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Actions (int64 ``[B]``) of uint8 stacks ``[B, 4, H, W]`` and the outputs they were
+        chosen from: ``"q"`` (expected Q-values ``[B, A]``) and, from a network that declares
+        one, ``"risk"`` (``[B, A]`` or ``[B]``) (``gives_values`` actors)."""
+        raise NotImplementedError(f"{type(self).__name__} gives no Q-values")
 
     def to(self, device: torch.device | str) -> Actor:  # noqa: B027
         """Run on ``device`` from now on (``tensor_policy`` actors); returns self."""
@@ -74,6 +84,9 @@ class JobResult:
     """A human pressed Esc: the episode under way was dropped, the finished ones kept."""
     interrupted: Interrupted | None = None
     """The signal that stopped it (SIGINT, SIGTERM); None: none did."""
+    traces: list[EpisodeTrace] = field(default_factory=list)
+    """Per finished episode, its steps' Q-values, actions and rewards (runs with ``record``
+    and a ``gives_values`` actor; else empty)."""
 
 
 @contextmanager

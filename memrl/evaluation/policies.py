@@ -43,12 +43,24 @@ log = logging.getLogger(__name__)
 class GreedyActor(Actor):
     """argmax Q of a Q-network over a whole batch in one forward pass (the trained agent):
     :class:`~memrl.modules.policy.GreedyPolicy` as an actor. It acts from pixels alone, so
-    :func:`~memrl.evaluation.runner.run_jobs` runs it on the batched engine."""
+    :func:`~memrl.evaluation.runner.run_jobs` runs it on the batched engine.
+
+    Args:
+        net: the Q-network.
+        device: where it runs.
+        gamma: the discount its Q-values estimate (the run's ``agent.gamma``): with it the
+            protocol evaluation records the crash-sight section
+            (:mod:`memrl.evaluation.crash_sight`); None: not recorded.
+    """
 
     tensor_policy = True
+    gives_values = True
 
-    def __init__(self, net: torch.nn.Module, device: torch.device | str = "cpu") -> None:
+    def __init__(self, net: torch.nn.Module, device: torch.device | str = "cpu",
+                 gamma: float | None = None) -> None:
         self.policy = GreedyPolicy(net, device)
+        self.gamma = gamma
+        self._risk: bool | None = None  # the network declares a "risk" output (found at the first call)
 
     @property
     def net(self) -> torch.nn.Module:
@@ -62,8 +74,28 @@ class GreedyActor(Actor):
     def act_pixels(self, pixels: torch.Tensor) -> torch.Tensor:
         return self.policy.act_batch(pixels)
 
+    def act_values(self, pixels: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Greedy actions and the expected Q-values they maximise (the forward acting uses);
+        for a network whose ``outputs`` declare ``"risk"``, its declared outputs instead, the
+        risk among them (one forward either way)."""
+        if self._risk is None:
+            self._risk = "risk" in self.policy.outputs(pixels[:1])
+        if self._risk:
+            out = self.policy.outputs(pixels)
+            values = {"q": out["q"], "risk": out["risk"]}
+        else:
+            values = {"q": self.policy.q_values(pixels)}
+        return values["q"].argmax(-1), values
+
     def act(self, slots: Sequence[int], envs: Sequence[LaneChangeEnv], pixels: np.ndarray) -> np.ndarray:
         return self.policy.act_batch(torch.from_numpy(pixels)).cpu().numpy()
+
+
+def run_gamma(cfg: dict[str, Any]) -> float | None:
+    """The discount a run's Q-values estimate: its config's ``agent.gamma`` (None when the
+    config records none: the crash-sight section is then not recorded)."""
+    gamma = (cfg.get("agent") or {}).get("gamma")
+    return None if gamma is None else float(gamma)
 
 
 def policy_seed(seed: int) -> int:
@@ -227,7 +259,7 @@ class CheckpointSource(PolicySource):
             mode = str(cfg.get("mode", {}).get("name", "default"))
             label = run_label(cfg)  # rows are grouped by the traffic trained among: "A (mixed)"
             out.append(Candidate(
-                name=self.name or label, actor=GreedyActor(net),
+                name=self.name or label, actor=GreedyActor(net, gamma=run_gamma(cfg)),
                 env=cfg.get("env") or ckpt_env, out_dir=run / (self.subdir or DEFAULT_SUBDIR),
                 meta={"kind": "checkpoint", "run": str(run), "mode": mode,
                       "train_seed": cfg.get("seed"), "unit": f"seed {cfg.get('seed')}"}))

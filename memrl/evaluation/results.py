@@ -46,6 +46,10 @@ class EvalResult:
     env: dict[str, Any] = field(default_factory=dict)
     """Env config of the episodes (the protocol's rules applied; ``initial_lane`` of the first
     setting): with ``meta`` and a seed, enough to replay an episode."""
+    crash_sight: dict[str, Any] | None = None
+    """Q against the return by steps before a crash and the action gaps, per initial-lane
+    setting (:func:`memrl.evaluation.crash_sight.summarize`); None: not recorded (a policy
+    without Q-values, or an evaluation made before they were recorded)."""
 
     def records(self) -> list[EpisodeRecord]:
         """The per-episode records from the folder's CSV."""
@@ -56,8 +60,10 @@ class EvalResult:
 def write_result(out_dir: Path, name: str, records: list[EpisodeRecord], protocol: ProtocolConfig,
                  seeds: list[int], meta: dict[str, Any], *, stopped_early: bool = False,
                  wall_s: float = 0.0, env: dict[str, Any] | None = None,
-                 extra: dict[str, Any] | None = None) -> EvalResult:
-    """Write ``episodes.csv`` and ``eval.json`` into ``out_dir`` (replacing earlier ones)."""
+                 extra: dict[str, Any] | None = None,
+                 crash_sight: dict[str, Any] | None = None) -> EvalResult:
+    """Write ``episodes.csv`` and ``eval.json`` into ``out_dir`` (replacing earlier ones);
+    ``crash_sight`` (when given) goes into ``eval.json`` under that key."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with (out_dir / EPISODES_CSV).open("w", newline="") as f:
         writer = csv.DictWriter(f, CSV_FIELDS)
@@ -66,7 +72,7 @@ def write_result(out_dir: Path, name: str, records: list[EpisodeRecord], protoco
     result = EvalResult(name=name, unit=str(meta.get("unit", name)), scores=scores_by_lane(records),
                         protocol=asdict(protocol), protocol_id=protocol_id(protocol), seeds=list(seeds),
                         path=out_dir, meta=dict(meta), stopped_early=stopped_early, wall_s=wall_s,
-                        env=dict(env or {}))
+                        env=dict(env or {}), crash_sight=crash_sight)
     doc = {
         "name": result.name, "unit": result.unit,
         "scores": {lane: asdict(s) for lane, s in result.scores.items()},
@@ -74,6 +80,7 @@ def write_result(out_dir: Path, name: str, records: list[EpisodeRecord], protoco
         "episodes_done": len(records), "stopped_early": stopped_early,
         "wall_s": round(wall_s, 3), "meta": result.meta, "env": result.env,
         "crashes": crashes_by_lane(records), **dict(extra or {}),
+        **({"crash_sight": crash_sight} if crash_sight is not None else {}),
         "seeds": result.seeds,
     }
     tmp = out_dir / (EVAL_JSON + ".tmp")
@@ -104,7 +111,8 @@ def _result_of(doc: Any, folder: Path) -> EvalResult:
                       scores={k: Score(**v) for k, v in doc["scores"].items()},
                       protocol=doc["protocol"], protocol_id=doc["protocol_id"], seeds=doc["seeds"],
                       path=folder, meta=doc.get("meta", {}), stopped_early=doc.get("stopped_early", False),
-                      wall_s=doc.get("wall_s", 0.0), env=doc.get("env", {}))
+                      wall_s=doc.get("wall_s", 0.0), env=doc.get("env", {}),
+                      crash_sight=doc.get("crash_sight"))
 
 
 def find_results(paths: list[str | Path]) -> list[EvalResult]:

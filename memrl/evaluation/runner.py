@@ -29,6 +29,7 @@ import torch
 
 from memrl.envs.crash import kind_name
 from memrl.envs.lane_change import LaneChangeEnv
+from memrl.evaluation.crash_sight import EpisodeTrace
 from memrl.evaluation.engine_runner import engine_can_run, resolve_device, run_jobs_on_engine
 from memrl.evaluation.jobs import Actor, Job, JobResult, StepHook, torch_threads
 from memrl.evaluation.protocol import INITIAL_LANES, EpisodeRecord, closing_or_none
@@ -51,6 +52,25 @@ class _Slot:
     start_lane: int
     vehicles: int
     ret: float = 0.0
+    kept: dict[str, list] | None = None
+    """With ``record``: per step the outputs acted on (``q``, ``risk``), the action, the reward."""
+
+    def keep(self, action: int, values: dict[str, np.ndarray]) -> None:
+        """Keep a step's action and the outputs it was chosen from (``record``)."""
+        assert self.kept is not None
+        self.kept["action"].append(action)
+        for key, value in values.items():
+            self.kept[key].append(value)
+
+    def traces(self, record: EpisodeRecord) -> list[EpisodeTrace]:
+        """The finished episode's recorded steps (none without ``record``)."""
+        if self.kept is None:
+            return []
+        k, f32 = self.kept, np.float32
+        risk = np.array(k["risk"], dtype=f32) if k["risk"] else None
+        return [EpisodeTrace(record.initial_lane, self.index, np.array(k["q"], dtype=f32),
+                             np.array(k["action"], dtype=np.int64), np.array(k["reward"], dtype=f32),
+                             record.collided, risk)]
 
 
 def one_thread() -> AbstractContextManager[None]:
@@ -60,13 +80,15 @@ def one_thread() -> AbstractContextManager[None]:
 
 
 def run_job(actor: Actor, job: Job, batch: int = 8, frame_stack: int = 4,
-            hook: StepHook | None = None) -> JobResult:
-    """Run the job's episodes, up to ``batch`` at a time; a finished slot takes the next one."""
+            hook: StepHook | None = None, record: bool = False) -> JobResult:
+    """Run the job's episodes, up to ``batch`` at a time; a finished slot takes the next one.
+    ``record``: keep each episode's Q-values, actions and rewards (``gives_values`` actors)."""
     with one_thread():
-        return _run_job(actor, job, batch, frame_stack, hook)
+        return _run_job(actor, job, batch, frame_stack, hook, record and actor.gives_values)
 
 
-def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHook | None) -> JobResult:
+def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHook | None,
+             record: bool = False) -> JobResult:
     batch = max(1, min(batch if actor.batchable else 1, len(job.episodes)))
     render = "rgb_array" if actor.needs_render or hook is not None else None
     envs = [LaneChangeEnv(config=job.env, render_mode=render) for _ in range(batch)]
@@ -77,16 +99,18 @@ def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHoo
         while True:
             for s, env in enumerate(envs):
                 if slots[s] is None and queue:
-                    slots[s] = _start(actor, s, env, *queue.pop(0), frame_stack, hook)
+                    slots[s] = _start(actor, s, env, *queue.pop(0), frame_stack, hook, record)
             running = [s for s in range(batch) if slots[s] is not None]
             if not running:
                 break
             pixels = np.stack([slots[s].stack.frames for s in running])  # type: ignore[union-attr,misc]
-            actions = actor.act(running, [envs[s] for s in running], pixels)
+            actions = _act(actor, running, envs, slots, pixels, record)  # type: ignore[arg-type]
             for s, action in zip(running, actions, strict=True):
-                record = _step(envs[s], slots[s], int(action), job, hook)  # type: ignore[arg-type]
-                if record is not None:
-                    result.records.append(record)
+                slot = slots[s]
+                rec = _step(envs[s], slot, int(action), job, hook)  # type: ignore[arg-type]
+                if rec is not None:
+                    result.records.append(rec)
+                    result.traces += slot.traces(rec)  # type: ignore[union-attr]
                     slots[s] = None
     except StopRecording:
         log.info("evaluation stopped after %d finished episodes", len(result.records))
@@ -100,15 +124,29 @@ def _run_job(actor: Actor, job: Job, batch: int, frame_stack: int, hook: StepHoo
     return result
 
 
+def _act(actor: Actor, running: list[int], envs: list[LaneChangeEnv], slots: list[_Slot],
+         pixels: np.ndarray, record: bool) -> np.ndarray:
+    """The running slots' actions; with ``record``, from the actor's values, kept per slot."""
+    if not record:
+        return actor.act(running, [envs[s] for s in running], pixels)
+    acts, outs = actor.act_values(torch.from_numpy(pixels))
+    actions = acts.cpu().numpy()
+    values = {k: v.cpu().numpy() for k, v in outs.items() if k in ("q", "risk")}
+    for j, s in enumerate(running):
+        slots[s].keep(int(actions[j]), {k: v[j] for k, v in values.items()})
+    return actions
+
+
 def _start(actor: Actor, slot: int, env: LaneChangeEnv, index: int, seed: int, frame_stack: int,
-           hook: StepHook | None) -> _Slot:
+           hook: StepHook | None, record: bool = False) -> _Slot:
     obs, _ = env.reset(seed=seed)
     stack = FrameStack(frame_stack, env.cfg.frame_stride)
     stack.reset(obs)
     actor.begin(slot, env, seed)
     if hook is not None:
         hook(env, stack.frames, None, None)  # type: ignore[arg-type]
-    return _Slot(index, seed, stack, env.current_lane(), len(env.others))
+    kept: dict[str, list] | None = {"q": [], "risk": [], "action": [], "reward": []} if record else None
+    return _Slot(index, seed, stack, env.current_lane(), len(env.others), kept=kept)
 
 
 def _step(env: LaneChangeEnv, slot: _Slot, action: int, job: Job, hook: StepHook | None
@@ -116,6 +154,8 @@ def _step(env: LaneChangeEnv, slot: _Slot, action: int, job: Job, hook: StepHook
     obs, reward, terminated, truncated, info = env.step(action)
     slot.stack.push(obs)
     slot.ret += float(reward)
+    if slot.kept is not None:
+        slot.kept["reward"].append(float(reward))
     record = None
     if terminated or truncated:
         record = EpisodeRecord(
@@ -140,7 +180,8 @@ def split(jobs: Sequence[Job], parts: int) -> list[Job]:
 
 def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int = 8,
              progress: bool = False, desc: str = "evaluate", device: torch.device | str = "cpu",
-             engine_batch: int | None = None, engine: bool | None = None) -> JobResult:
+             engine_batch: int | None = None, engine: bool | None = None,
+             record: bool = False) -> JobResult:
     """Run all jobs; records come back sorted by (initial lane, episode index), whatever the split.
 
     Args:
@@ -155,6 +196,8 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
         engine_batch: engine path: envs per job at once (None: all of the job's episodes).
         engine: force (True) or forbid (False) the engine path; None: the engine for
             ``tensor_policy`` actors on jobs it can run (:func:`engine_can_run`).
+        record: keep each episode's Q-values, actions and rewards (``JobResult.traces``) when
+            the actor gives them (``gives_values``): what the crash-sight section reads.
     """
     total = sum(len(j.episodes) for j in jobs)
     bar = progress_bar(progress, total=total, desc=desc, unit="ep")
@@ -164,21 +207,23 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
         dev = resolve_device(device)
         threads = max(1, workers) if dev.type == "cpu" else torch.get_num_threads()
         out = run_jobs_on_engine(actor, jobs, batch=engine_batch, device=dev, threads=threads,
-                                 on_done=bar.update)
+                                 on_done=bar.update, record=record)
     elif workers > 1 and actor.parallel:
         # spawn, not fork: a forked child may hang in torch's thread pool
         pieces = split(jobs, 4 * workers)
         with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
                                  initializer=worker_start) as pool, stopped_with_parent(pool):
-            futures = [pool.submit(run_job, actor, piece, batch) for piece in pieces]
+            futures = [pool.submit(run_job, actor, piece, batch, record=record) for piece in pieces]
             for future in as_completed(futures):
                 res = future.result()
                 out.records += res.records
+                out.traces += res.traces
                 bar.update(len(res.records))
     else:
         for job in jobs:
-            res = run_job(actor, job, batch)
+            res = run_job(actor, job, batch, record=record)
             out.records += res.records
+            out.traces += res.traces
             bar.update(len(res.records))
             if res.stopped_early:
                 out.stopped_early, out.interrupted = True, res.interrupted
@@ -186,4 +231,5 @@ def run_jobs(actor: Actor, jobs: Sequence[Job], *, workers: int = 1, batch: int 
     bar.close()
     order = {lane: i for i, lane in enumerate(INITIAL_LANES)}
     out.records.sort(key=lambda r: (order.get(r.initial_lane, 99), r.episode))
+    out.traces.sort(key=lambda t: (order.get(t.initial_lane, 99), t.episode))
     return out

@@ -10,21 +10,31 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from memrl.evaluation.crash_sight import summarize
 from memrl.evaluation.jobs import JobResult
 from memrl.evaluation.policies import Candidate
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.results import EvalResult, write_result
 from memrl.evaluation.runner import Job, run_jobs
+from memrl.evaluation.sight_tables import evaluation_markdown
 from memrl.stop import Interrupted, SignalGuard, Stopped, how_stopped, interrupted_by, output_overrides
 
 log = logging.getLogger(__name__)
+
+EVAL_MD = "eval.md"
+"""An evaluation folder's markdown: its scores and the section "Does the learner see its crash
+coming" (:func:`~memrl.evaluation.sight_tables.evaluation_markdown`)."""
 
 
 def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
                        env_cfg: Mapping[str, Any] | DictConfig | None = None,
                        out_dir: Path | None = None, workers: int = 1, batch: int = 8,
                        progress: bool = False, resume: EvalResult | None = None) -> EvalResult:
-    """Run the protocol's episodes for ``cand`` and write ``eval.json`` + ``episodes.csv``.
+    """Run the protocol's episodes for ``cand`` and write ``eval.json`` + ``episodes.csv``, and
+    ``eval.md`` (the scores and the crash-sight section). An actor that gives its Q-values and
+    knows their discount (a trained run's :class:`~memrl.evaluation.policies.GreedyActor`) has
+    its episodes recorded as they are driven: ``eval.json``'s ``crash_sight``
+    (:func:`memrl.evaluation.crash_sight.summarize`; of this call's episodes on a resume).
 
     Args:
         cand: the policy, its env config and its results folder.
@@ -56,11 +66,13 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
     total = len(seeds) * len(protocol.initial_lanes)
     if hasattr(cand.actor, "plan"):
         cand.actor.plan(total, done=len(done))
+    gamma = getattr(cand.actor, "gamma", None)
+    record = cand.actor.gives_values and gamma is not None
     start = time.perf_counter()
     try:
         with SignalGuard():
             res = run_jobs(cand.actor, [j for j in jobs if j.episodes], workers=workers, batch=batch,
-                           progress=progress, desc=f"evaluate {cand.name}")
+                           progress=progress, desc=f"evaluate {cand.name}", record=record)
     except (KeyboardInterrupt, Interrupted) as err:  # between jobs, or in worker processes
         res = JobResult(stopped_early=True, interrupted=interrupted_by(err))
     finally:
@@ -76,10 +88,13 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
     if not records:
         raise RuntimeError(f"evaluate {cand.name}: no episode finished")
     stopped = res.stopped_early or len(records) < total
+    sight = summarize(res.traces, float(gamma), protocol.duration) \
+        if gamma is not None and record and res.traces else None
     result = write_result(Path(where), cand.name, records, protocol, seeds, cand.meta,
                           stopped_early=stopped, wall_s=wall, env=jobs[0].env,
                           extra={"workers": workers, "batch": batch, "episodes_planned": total,
-                                 "steps": sum(r.steps for r in records)})
+                                 "steps": sum(r.steps for r in records)}, crash_sight=sight)
+    (Path(where) / EVAL_MD).write_text(evaluation_markdown(result))
     steps = sum(r.steps for r in res.records)
     log.info("%s (%s): %d episodes, %d steps in %.1f s (%.0f steps/s) -> %s", cand.name,
              result.unit, len(res.records), steps, wall, steps / max(wall, 1e-9), where)

@@ -122,6 +122,20 @@ class GreedyPolicy(DrivingPolicy):
             h = max_pool_2x2(h) if _plain_2x2_pool(layer) else layer(h)
         return net.head(h).reshape(*batch, -1)
 
+    @torch.inference_mode()
+    def outputs(self, pixels: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The network's declared outputs (``net.outputs``: ``"q"`` and, e.g., a distribution's
+        logits or a crash risk) of uint8 stacks ``[B, frames, H, W]``; a network without
+        ``outputs``: ``{"q": Q-values}``. In chunks on CPU, as :meth:`q_values`."""
+        declared = getattr(self.net, "outputs", None)
+        if declared is None:
+            return {"q": self.q_values(pixels)}
+        x = pixels.to(self.device, non_blocking=True)
+        chunk = self.cpu_chunk if self.device.type == "cpu" and self.cpu_chunk else len(x)
+        parts = [declared(part.contiguous(memory_format=torch.channels_last))
+                 for part in x.split(max(1, chunk))]
+        return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+
     def act_batch(self, pixels: torch.Tensor) -> torch.Tensor:
         """Greedy actions (int64 ``[B]``, on the device) of a batch of stacks: argmax Q, or a
         crash-risk critic's safe choice (:func:`memrl.modules.qnet.decision_values`)."""

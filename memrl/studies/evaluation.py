@@ -105,7 +105,7 @@ def evaluate_stage1(run: Path, folder: Path, settings: EvalSettings, out: Evalua
     """Mode B's stage-1 weights (``checkpoints/stage1.pt``) into ``folder``; skipped when the
     run has none."""
     from memrl.checkpoint import load_stage1_qnet
-    from memrl.evaluation.policies import Candidate, CheckpointSource, GreedyActor, run_config
+    from memrl.evaluation.policies import Candidate, CheckpointSource, GreedyActor, run_config, run_gamma
 
     weights = run / "checkpoints" / "stage1.pt"
     if not weights.is_file():
@@ -114,7 +114,7 @@ def evaluate_stage1(run: Path, folder: Path, settings: EvalSettings, out: Evalua
     [final] = CheckpointSource(str(run)).candidates()
     final.actor.close()
     cfg = run_config(run)
-    cand = Candidate(final.name + STAGE1_SUFFIX, GreedyActor(load_stage1_qnet(weights)),
+    cand = Candidate(final.name + STAGE1_SUFFIX, GreedyActor(load_stage1_qnet(weights), gamma=run_gamma(cfg)),
                      env=cfg.get("env"), out_dir=folder,
                      meta={"kind": "stage1", "run": str(run), "mode": final.meta["mode"],
                            "train_seed": cfg.get("seed"), "unit": f"seed {cfg.get('seed')}"})

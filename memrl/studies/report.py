@@ -25,6 +25,7 @@ from memrl.evaluation.crashes import crash_section
 from memrl.evaluation.periodic import PERIODIC_CSV
 from memrl.evaluation.protocol import suffixed, traffic_tag, traffic_type
 from memrl.evaluation.results import EvalResult
+from memrl.evaluation.sight_tables import sight_section
 from memrl.modes import MODES, by_label
 from memrl.studies.evaluation import STAGE1_SUFFIX
 from memrl.studies.grid import Cell
@@ -490,6 +491,7 @@ def write_report(inputs: ReportInputs, path: Path) -> Path:
               *both_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *traffic_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *crash_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
+              *sight_section([[*inputs.runs, *inputs.baselines], inputs.stage1], inputs.stats),
               *training_section(inputs.finished), *cost_section(inputs.finished), "## Figures", ""]
     lines += [f"![{f.stem}]({f.name})" for f in inputs.figures] + [""]
     lines += ["## Files", "",
