@@ -100,6 +100,7 @@ def test_only_the_critic_learns_from_its_term_and_the_base_only_from_its_own():
 
 
 def test_the_agent_acts_through_the_critic_in_training_and_evaluation():
+    from memrl.evaluation.policies import GreedyActor
     from memrl.modules.policy import GreedyPolicy
 
     learner = moved_learner({**RISK, "threshold": 0.5})
@@ -111,6 +112,8 @@ def test_the_agent_acts_through_the_critic_in_training_and_evaluation():
         decided = net.decide(x).argmax(-1)
         acted = learner.acting_actor(TensorDict({"pixels": x}, [len(x)]))["action"]
     assert torch.equal(acted, decided) and torch.equal(GreedyPolicy(net).act_batch(x), decided)
+    actions, values = GreedyActor(net, gamma=0.95).act_values(x)  # the evaluation's recording actor
+    assert torch.equal(actions, decided) and set(values) == {"q", "risk"}
     assert int(decided[0]) != int(net.base(x)[0].argmax())
 
 

@@ -35,6 +35,7 @@ from memrl.evaluation.rows import row_label
 from memrl.evaluation.runner import Actor
 from memrl.modes import MODES
 from memrl.modules.policy import DrivingPolicy, GreedyPolicy
+from memrl.modules.risk import safe_choice
 
 log = logging.getLogger(__name__)
 
@@ -80,9 +81,12 @@ class GreedyActor(Actor):
         risk among them (one forward either way)."""
         if self._risk is None:
             self._risk = "risk" in self.policy.outputs(pixels[:1])
-        if self._risk:
+        if self._risk:  # a crash-risk critic acts on its safe choice (memrl.modules.risk)
             out = self.policy.outputs(pixels)
             values = {"q": out["q"], "risk": out["risk"]}
+            threshold = getattr(self.policy.net, "threshold", None)
+            if threshold is not None:
+                return safe_choice(out["q"], out["risk"], float(threshold)).argmax(-1), values
         else:
             values = {"q": self.policy.q_values(pixels)}
         return values["q"].argmax(-1), values
