@@ -66,17 +66,24 @@ def test_auto_reset_steps_match_the_reference(backend):
     assert tally.resets > 16 and tally.collisions > 0
 
 
+
+def twin_engines(config: dict, pool, n: int) -> tuple[BatchedLaneChange, BatchedLaneChange]:
+    """Two engines of ``config`` (its learned cars from ``pool``), reset to the same scenes."""
+    if "opponent" in config:
+        config = {**config, "opponent": {**config["opponent"], "pool": pool}}
+    engines = BatchedLaneChange(config, n), BatchedLaneChange(config, n)
+    for engine in engines:
+        engine.reset(seeds=list(range(n)))
+    return engines
+
+
 @pytest.mark.parametrize("config", [NON_GOAL, {"opponent": {"type": "mixed", "pool": "POOL", "epsilon": 0.2},
                                               "vehicles_count": 3}])
 def test_auto_reset_step_equals_step_then_reset(config, pool):
     """Same episodes, flags and frame stacks; ``final_observation`` is the stack a separate
     reset would have replaced."""
-    if "opponent" in config:
-        config = {**config, "opponent": {**config["opponent"], "pool": pool}}
     n, rng = 10, np.random.default_rng(0)
-    fused, split = BatchedLaneChange(config, n), BatchedLaneChange(config, n)
-    fused.reset(seeds=list(range(n)))
-    split.reset(seeds=list(range(n)))
+    fused, split = twin_engines(config, pool, n)
     resets = 0
     for _ in range(80):
         actions = torch.as_tensor(rng.integers(9, size=n))
@@ -106,12 +113,8 @@ def test_step_with_reset_equals_step_then_reset(config, pool):
     """``step(reset=ids)`` (the vector env's next-step autoreset: those envs start anew instead,
     their first frames drawn with every other env's new frame) leaves the engine as
     ``step()`` then ``reset(ids)``: states, generators' draws, frame stacks."""
-    if "opponent" in config:
-        config = {**config, "opponent": {**config["opponent"], "pool": pool}}
     n, rng = 10, np.random.default_rng(1)
-    fused, split = BatchedLaneChange(config, n), BatchedLaneChange(config, n)
-    fused.reset(seeds=list(range(n)))
-    split.reset(seeds=list(range(n)))
+    fused, split = twin_engines(config, pool, n)
     ended, resets = np.zeros(n, dtype=bool), 0
     for _ in range(80):
         actions = torch.as_tensor(rng.integers(9, size=n))

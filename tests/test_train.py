@@ -298,8 +298,6 @@ def test_a_default_run_made_when_the_mode_node_held_every_modes_keys_resumes(com
     assert diff == ["mode.demo_fraction: 0.1 (checkpoint) vs 0.3 (now)"]
 
 
-@pytest.mark.parametrize(("mode", "read"), [("A", "mode.margin=0.5"),
-                                            ("B", "mode.stage1.max_updates=7")])
 def test_an_older_a_run_s_margin_under_its_old_name_is_read_as_mode_margin(compose_cfg):
     """Mode A's margin was ``mode.stage1.margin``: a run that stored it there compares as if it
     had stored ``mode.margin`` (same value: no difference; another: a difference in
@@ -319,6 +317,8 @@ def test_an_older_a_run_s_margin_under_its_old_name_is_read_as_mode_margin(compo
     assert ckpt.config_diff(ckpt.used(stored_as_before(0.5)), ckpt.used(half)) == []
 
 
+@pytest.mark.parametrize(("mode", "read"), [("A", "mode.margin=0.5"),
+                                            ("B", "mode.stage1.max_updates=7")])
 def test_a_prior_knowledge_run_ignores_the_other_modes_keys_of_an_older_run(compose_cfg, mode, read):
     """Mode A has no stage key but the margin of its margin loss; mode B not A's two keys: the
     values an older run's union ``mode`` node held for those keep the config the same for

@@ -50,11 +50,14 @@ LEARNING_OPTIONS: dict[str, dict[str, Any]] = {
                         "v_min": None, "v_max": None}},
     "hlgauss": {"network": {"_target_": "memrl.modules.hlgauss.HLGaussQNetwork", "atoms": 51,
                             "v_min": None, "v_max": None, "sigma": 0.75}},
+    "risk": {"network": {"_target_": "memrl.modules.risk.RiskQNetwork",
+                         "base": {"_target_": "memrl.modules.qnet.QNetwork"}}},
 }
 """Learning options timed beside the default (``learning=true``): name -> ``agent`` values,
 ``network`` values (over Table I's), or ``stage1``: mode B's stage-1 update (every row a demo,
 DQfD's margin term at ``mode.stage1``'s default weight and margin). The value heads (``c51``,
-``hlgauss``) take their support from the default task's return bounds, as training does."""
+``hlgauss``) take their support from the default task's return bounds, as training does;
+``risk`` is Table I with the crash-risk critic beside it (``network=risk``)."""
 
 
 def default_agent_cfg() -> DictConfig:

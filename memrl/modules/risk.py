@@ -19,6 +19,7 @@ the safe choice of the online networks) or the safest one (``safest``: the least
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -115,9 +116,9 @@ class RiskQNetwork(nn.Module):
     @classmethod
     def td_term_for(cls, agent: Any, network: Any) -> RiskTerm:
         """The base head's own TD term with the critic's cross-entropy beside it."""
-        return RiskTerm(base=head_td_term(agent, network["base"]), gamma=float(network.get("gamma", 0.97)),
-                        weight=float(network.get("weight", 1.0)),
-                        bootstrap=str(network.get("bootstrap", "policy")))
+        keys = {**dataclasses.asdict(RiskConfig()), **network}  # a stored node may omit defaults
+        return RiskTerm(base=head_td_term(agent, network["base"]), gamma=float(keys["gamma"]),
+                        weight=float(keys["weight"]), bootstrap=str(keys["bootstrap"]))
 
 
 def safe_choice(q: torch.Tensor, risk: torch.Tensor, threshold: float) -> torch.Tensor:
