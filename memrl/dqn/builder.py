@@ -48,7 +48,7 @@ class Stage:
 
     @property
     def offline(self) -> bool:
-        return self.explore is None
+        return self.spec.offline
 
 
 @dataclass(frozen=True)

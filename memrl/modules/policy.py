@@ -98,15 +98,17 @@ class GreedyPolicy(DrivingPolicy):
         self.net.to(device=self.device, memory_format=torch.channels_last)  # type: ignore[call-overload]
         return self
 
+    def _parts(self, pixels: torch.Tensor) -> list[torch.Tensor]:
+        """``pixels`` on the device, channels-last, in chunks of ``cpu_chunk`` on the CPU."""
+        x = pixels.to(self.device, non_blocking=True)
+        chunk = self.cpu_chunk if self.device.type == "cpu" and self.cpu_chunk else len(x)
+        return [part.contiguous(memory_format=torch.channels_last) for part in x.split(max(1, chunk))]
+
     @torch.inference_mode()
     def q_values(self, pixels: torch.Tensor) -> torch.Tensor:
         """Q-values ``[B, actions]`` of uint8 stacks ``[B, frames, H, W]`` (moved to the device)."""
-        x = pixels.to(self.device, non_blocking=True)
-        chunk = self.cpu_chunk if self.device.type == "cpu" and self.cpu_chunk else len(x)
-        if len(x) <= chunk:
-            return self._forward(x.contiguous(memory_format=torch.channels_last))
-        return torch.cat([self._forward(part.contiguous(memory_format=torch.channels_last))
-                          for part in x.split(chunk)])
+        parts = [self._forward(part) for part in self._parts(pixels)]
+        return parts[0] if len(parts) == 1 else torch.cat(parts)
 
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         """The network's forward; the 2x2 max-pools of a Table I trunk (any :class:`QNetwork`
@@ -130,20 +132,16 @@ class GreedyPolicy(DrivingPolicy):
         declared = getattr(self.net, "outputs", None)
         if declared is None:
             return {"q": self.q_values(pixels)}
-        x = pixels.to(self.device, non_blocking=True)
-        chunk = self.cpu_chunk if self.device.type == "cpu" and self.cpu_chunk else len(x)
-        parts = [declared(part.contiguous(memory_format=torch.channels_last))
-                 for part in x.split(max(1, chunk))]
+        parts = [declared(part) for part in self._parts(pixels)]
         return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
 
     def act_batch(self, pixels: torch.Tensor) -> torch.Tensor:
         """Greedy actions (int64 ``[B]``, on the device) of a batch of stacks: argmax Q, or a
         crash-risk critic's safe choice (:func:`memrl.modules.qnet.decision_values`)."""
-        if getattr(self.net, "decide", None) is not None:
-            with torch.inference_mode():
-                x = pixels.to(self.device, non_blocking=True).contiguous(memory_format=torch.channels_last)
-                return decision_values(self.net, x).argmax(-1)
-        return self.q_values(pixels).argmax(-1)
+        if getattr(self.net, "decide", None) is None:
+            return self.q_values(pixels).argmax(-1)
+        with torch.inference_mode():
+            return torch.cat([decision_values(self.net, part).argmax(-1) for part in self._parts(pixels)])
 
     def act(self, env: LaneChangeEnv, pixels: np.ndarray) -> int:
         return int(self.act_batch(torch.from_numpy(np.ascontiguousarray(pixels))[None])[0])

@@ -29,7 +29,7 @@ from torch import nn
 
 from memrl.fields import spec
 from memrl.modules.network_config import NetworkConfig, check_network
-from memrl.modules.qnet import TABLE1, QNetwork, head_td_term, network_class, network_for_task
+from memrl.modules.qnet import TABLE1, QNetwork, head_td_term, network_for_task
 
 BOOTSTRAPS = ("policy", "safest")
 
@@ -175,7 +175,3 @@ class RiskTerm:
         a_next = net.decide(nxt).argmax(-1, keepdim=True)  # the online networks' safe choice
         return target.gather(-1, a_next).squeeze(-1)
 
-
-def is_risk_network(network: Any) -> bool:
-    """Whether a ``network`` node, class or module is a crash-risk critic's."""
-    return issubclass(network_class(network), RiskQNetwork)
