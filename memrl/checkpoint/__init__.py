@@ -25,6 +25,7 @@ from memrl.checkpoint.networks import (
     describe,
     load_qnet,
     load_stage1_qnet,
+    offline_state,
     qnet_from,
     qnet_weights,
     resolve,
@@ -40,6 +41,6 @@ from memrl.checkpoint.resume import recorded_config
 from memrl.checkpoint.weights import CHECKSUM_KEY, load_weights, save_weights
 
 __all__ = ["CHECKSUM_KEY", "OFFLINE_WEIGHTS", "CheckpointError", "GreedyQPolicy", "LearnedCarController",
-           "OpponentPoolError", "check_stage1", "describe", "load_policy", "load_qnet", "load_stage1_qnet",
+           "OpponentPoolError", "check_stage1", "describe", "load_policy", "load_qnet", "load_stage1_qnet", "offline_state",
            "load_weights", "qnet_from", "qnet_weights", "recorded_config", "resolve", "save_offline",
            "save_qnet", "save_weights", "stage1_file", "stage1_source", "stored_arch"]

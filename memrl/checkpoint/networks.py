@@ -142,10 +142,10 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     if network is not None:
         stored = stored_arch(state)
         with torch.random.fork_rng(devices=[]):  # building draws initial weights
-            ours = arch_of(build_qnet(network))
-        if stored != ours:
-            raise CheckpointError(f"{file}: its network {describe(stored)} is not this run's "
-                                  f"{describe(ours)} (key network)")
+            ours, base = arch_of(build_qnet(network)), base_arch(network)
+        if stored not in (ours, base):
+            raise CheckpointError(f"{file}: its network {describe(stored)} is neither this run's "
+                                  f"{describe(ours)} nor its base head (key network)")
     run_cfg = file.parent.parent / "config.yaml"
     if run_cfg.is_file():
         loaded = load_run_config(run_cfg)
@@ -162,6 +162,40 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
                          "run's %s (shaping %s)", file, their_reward, their_shaping or "off", our_reward,
                          our_shaping or "off")
     return file
+
+
+def base_arch(network: Any) -> dict[str, Any] | None:
+    """The architecture of the base head of a network that holds one beside a critic of its own
+    (``network.base``: :mod:`memrl.modules.risk`), built alone with the network's frames, size
+    and actions; None for a network without one."""
+    node = network.get("base") if hasattr(network, "get") else None
+    if node is None:
+        return None
+    task = {k: network[k] for k in ("frames", "size", "n_actions") if k in network}
+    with torch.random.fork_rng(devices=[]):
+        return arch_of(build_qnet({**task, **node}))
+
+
+BASE = ".module.0.module."
+"""Where a ``DQNLoss`` state dict's keys name the Q-network's own parameters."""
+
+
+def offline_state(state: dict[str, Any], loss_module: torch.nn.Module) -> dict[str, Any]:
+    """The ``loss_module`` state to load from stage-1 weights ``state`` (:func:`stage1_source`
+    has checked them): theirs as stored for the same network; for a network with a critic
+    beside a base head of the stored architecture (``network=risk`` from a stage 1 trained
+    without one), the base's online and target weights theirs, the critic's its own."""
+    theirs, ours = state["loss_module"], loss_module.state_dict()
+    if set(theirs) == set(ours):
+        return theirs
+    mapped = dict(ours)
+    for key, value in theirs.items():
+        head, sep, rest = key.partition(BASE)
+        new = f"{head}{BASE}base.{rest}" if sep else key
+        if new not in ours or tuple(ours[new].shape) != tuple(value.shape):
+            raise CheckpointError(f"stage-1 weights: {key} has no place in this run's network")
+        mapped[new] = value
+    return mapped
 
 
 def load_stage1_qnet(path: str | Path) -> torch.nn.Module:

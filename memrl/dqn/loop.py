@@ -29,7 +29,7 @@ from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
 from memrl.checkpoint import resume as ckpt
-from memrl.checkpoint import save_offline, save_qnet, stage1_source
+from memrl.checkpoint import offline_state, save_offline, save_qnet, stage1_source
 from memrl.checkpoint.weights import load_weights
 from memrl.data.buffers import priority_sampler
 from memrl.data.priority_sampler import reprioritize
@@ -269,7 +269,7 @@ class Trainer:
         """The offline stage done by another run (``mode.stage1.init``): its weights and record,
         then the switch."""
         state = load_weights(file, "stage-1 weights")  # checked again: read once more here
-        self.learner.loss_module.load_state_dict(state["loss_module"])
+        self.learner.loss_module.load_state_dict(offline_state(state, self.learner.loss_module))
         for key, value in state.get("stage1", {}).items():
             setattr(self.offline_progress, key, value)
         p = self.offline_progress

@@ -54,6 +54,10 @@ class RiskConfig(NetworkConfig):
     bootstrap: str = spec("policy", choices=BOOTSTRAPS)
     """``a'`` of the target: ``policy`` (the safe choice of the online networks, what the agent
     would do) or ``safest`` (the action of least target risk)."""
+    prior: float = spec(0.01, gt=0, lt=1)
+    """A fresh critic's risk: its output bias starts at logit(prior), so before it has learned
+    anything it allows every action (prior below ``threshold``) and the agent acts as its task
+    head does, as stage 2 starting from a stage 1 without a critic needs."""
 
     @staticmethod
     def check(node: Any, prefix: str = "network.") -> None:
@@ -69,7 +73,8 @@ class RiskQNetwork(nn.Module):
     def __init__(self, base: nn.Module, frames: int = 4, size: int = 84, n_actions: int = 9,
                  channels: int = 16, hidden: int = 256, layernorm: bool = False,
                  layernorm_convs: bool = False, pool_first: bool = True, gamma: float = 0.97,
-                 threshold: float = 0.1, weight: float = 1.0, bootstrap: str = "policy") -> None:
+                 threshold: float = 0.1, weight: float = 1.0, bootstrap: str = "policy",
+                 prior: float = 0.01) -> None:
         super().__init__()
         if not isinstance(base, nn.Module):
             raise TypeError(f"RiskQNetwork: base must be a network, got {type(base).__name__}")
@@ -77,6 +82,9 @@ class RiskQNetwork(nn.Module):
         self.critic = QNetwork(frames, size, n_actions, channels=channels, hidden=hidden,
                                layernorm=layernorm, layernorm_convs=layernorm_convs, pool_first=pool_first)
         self.frames, self.threshold = int(frames), float(threshold)
+        with torch.no_grad():  # the output layer's bias at logit(prior): see RiskConfig.prior
+            out = [m for m in self.critic.modules() if isinstance(m, nn.Linear)][-1]
+            out.bias.fill_(float(torch.logit(torch.tensor(float(prior), dtype=torch.float64))))
 
     @property
     def conv_dtype(self) -> torch.dtype | None:
