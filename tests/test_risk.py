@@ -163,3 +163,48 @@ def test_bad_risk_values_are_refused_at_start_naming_the_key(compose_cfg, overri
         check_train(compose_cfg("train", overrides))
     line = one_line(info.value)
     assert line.startswith(message) and "\n" not in line, line
+
+
+def test_a_fresh_critic_allows_every_action_so_the_agent_acts_as_its_task_head():
+    from memrl.modules.qnet import build_qnet
+
+    net = build_qnet(RISK)
+    x = fixed_input()
+    with torch.no_grad():
+        risk = torch.sigmoid(net.risk_logits(x))
+        assert float((net.critic.head[-1].bias - math.log(0.01 / 0.99)).abs().max()) < 1e-6
+        assert bool((risk < 0.3).all())  # below the threshold: every action allowed
+        assert torch.equal(net.decide(x).argmax(-1), net.base(x).argmax(-1))
+
+
+def test_stage_2_with_a_critic_starts_from_a_stage_1_trained_without_one(compose_cfg, tmp_path, demos):
+    from omegaconf import open_dict
+
+    from memrl.dqn.loop import Trainer
+    from memrl.schemas import check_train
+    from memrl.train import train
+    from tests.helpers import tiny
+
+    plain = compose_cfg("train", tiny("B"))
+    train(plain, tmp_path / "plain", demos=demos)
+    s1 = torch.load(tmp_path / "plain" / "checkpoints" / "stage1.pt", weights_only=False)["loss_module"]
+    overrides = [*tiny("B"), "network=risk", f"mode.stage1.init={tmp_path / 'plain'}"]
+    cfg = compose_cfg("train", overrides)
+    check_train(cfg)  # the base head is the stored architecture: accepted
+    fresh = Trainer(cfg, tmp_path / "fresh", demos).learner.loss_module.state_dict()
+    trainer = Trainer(cfg, tmp_path / "risk", demos)
+    trainer.run_offline()  # takes the shared stage 1
+    assert trainer.counters.stage == "B2"
+    now = trainer.learner.loss_module.state_dict()
+    base = {k.replace(".module.base.", ".module."): v for k, v in now.items() if ".module.base." in k}
+    assert base.keys() == {k for k in s1 if ".module.0.module." in k}
+    online = {k.removeprefix("target_"): v for k, v in s1.items() if k.startswith("value_network")}
+    assert all(torch.equal(v, online[k.removeprefix("target_")]) for k, v in base.items())  # synced at the switch
+    critic = [k for k in now if ".critic." in k]
+    assert critic and all(torch.equal(now[k], fresh[k]) for k in critic)  # its own initial weights
+    # a stage 1 of another architecture is refused, naming both
+    with open_dict(cfg):
+        cfg.network.base.hidden = 128
+    with pytest.raises(ValueError, match=r"config 'mode.stage1.init': .*its network QNetwork\(\) is not "
+                                         r"this run's RiskQNetwork\(.*\) nor its base head QNetwork\(hidden=128\)"):
+        check_train(cfg)

@@ -144,8 +144,9 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
         with torch.random.fork_rng(devices=[]):  # building draws initial weights
             ours, base = arch_of(build_qnet(network)), base_arch(network)
         if stored not in (ours, base):
-            raise CheckpointError(f"{file}: its network {describe(stored)} is neither this run's "
-                                  f"{describe(ours)} nor its base head (key network)")
+            nor = f" nor its base head {describe(base)}" if base is not None else ""
+            raise CheckpointError(f"{file}: its network {describe(stored)} is not this run's "
+                                  f"{describe(ours)}{nor} (key network)")
     run_cfg = file.parent.parent / "config.yaml"
     if run_cfg.is_file():
         loaded = load_run_config(run_cfg)
