@@ -18,9 +18,9 @@ import torch
 from tensordict import TensorDictBase
 
 from memrl.modules.qnet import TDTerm, head_td_term, target_action_gap
-from memrl.values import QFunctions
+from memrl.values import QFunctions, network_outputs
 
-__all__ = ["LossTerm", "MarginTerm", "QFunctions", "TDTerm", "margin_terms",
+__all__ = ["DistillTerm", "LossTerm", "MarginTerm", "distill_kl", "distill_terms", "QFunctions", "TDTerm", "margin_terms",
            "target_action_gap", "td_term"]
 
 
@@ -69,6 +69,47 @@ class MarginTerm:
         margins = torch.full_like(values, self.margin).scatter_(-1, a, 0.0)
         excess = (values + margins).max(-1).values - values.gather(-1, a).squeeze(-1)
         return self.weight * excess.mean()
+
+
+@dataclass(frozen=True)
+class DistillTerm:
+    """QDagger's distillation (Agarwal et al., 2022): ``weight`` x the learner's current
+    teacher scale (:attr:`QFunctions.teacher_scale`, set by :mod:`memrl.dqn.teacher`) x the
+    batch mean over the agent's own states (demo rows left out) of
+    KL(softmax(Q_teacher / tau) || softmax(Q / tau)); nothing without a teacher, at scale 0 or
+    for a batch of demos only. KL, not CleanRL's cross-entropy: the same gradient, 0 when the
+    student's softmax is the teacher's."""
+
+    weight: float
+    temperature: float = 1.0
+    name: str = "distill"
+
+    def __call__(self, batch: TensorDictBase, q: QFunctions) -> torch.Tensor | None:
+        if q.teacher is None or q.teacher_scale <= 0:
+            return None
+        own = ~batch["is_demo"].reshape(-1) if "is_demo" in batch.keys() else None
+        if own is not None and not bool(own.any()):
+            return None
+        student = q.batch_q if q.batch_q is not None else q.batch_outputs()["q"]  # the TD term's forward
+        pixels = batch["pixels"]
+        if own is not None:
+            student, pixels = student[own], pixels[own]
+        with torch.no_grad():
+            teacher = network_outputs(q.teacher, pixels)["q"].float()
+        kl = distill_kl(teacher, student.float(), self.temperature)
+        return self.weight * q.teacher_scale * kl
+
+
+def distill_kl(teacher_q: torch.Tensor, student_q: torch.Tensor, temperature: float) -> torch.Tensor:
+    """Mean over rows of KL(softmax(teacher_q / tau) || softmax(student_q / tau))."""
+    log_t = torch.log_softmax(teacher_q / temperature, -1)
+    log_s = torch.log_softmax(student_q / temperature, -1)
+    return (log_t.exp() * (log_t - log_s)).sum(-1).mean()
+
+
+def distill_terms(weight: float, temperature: float) -> list[LossTerm]:
+    """The distillation term when its weight is positive, else none."""
+    return [DistillTerm(float(weight), float(temperature))] if weight > 0 else []
 
 
 def margin_terms(weight: float, margin: float) -> list[LossTerm]:

@@ -73,6 +73,9 @@ class StageSpec:
     fresh_optimizer: bool = False
     """Starts a new Adam at ``agent.lr`` (the weights carry over; the target network is
     synced to them)."""
+    teacher: Callable[[Mode], Any] = lambda m: None
+    """Its teacher's settings (an online stage after an offline one: the frozen offline-stage
+    network, :class:`TeacherConfig`; :mod:`memrl.dqn.teacher`), None: no teacher."""
     settings: str | None = None
     """Makes it an offline stage: it trains on prior knowledge alone (no env steps) until its
     stop rule (:mod:`memrl.dqn.stage1`) stops it, with the settings in the ``mode`` key of
@@ -502,6 +505,69 @@ class ModeRConfig(DemoKeys):
     """Margin of that loss [Q units]."""
 
 
+@dataclass
+class TeacherConfig:
+    """Stage 2 held to its prior knowledge by the run's own stage-1 network, the teacher (a
+    frozen copy of ``checkpoints/stage1.pt``; no expert on call), in three ways that add up
+    (each off at 0): QDagger's distillation (Agarwal et al. 2022), JSRL's roll-ins (Uchendu et
+    al. 2022) and WSRL's warm start (Zhou et al. 2024). The student's drives (``drive_*``, the
+    stage-1 drive scenes) gate the first two; :mod:`memrl.dqn.teacher`."""
+
+    distill_weight: float = spec(0.0, ge=0)
+    """QDagger: weight of KL(pi_teacher || softmax(Q / temperature)) on the batch's agent
+    states; it is scaled by ``max(0, 1 - student / teacher)`` (their drives that survive and
+    reach), never rising again once lowered, so the teacher lets go as the student catches up."""
+    temperature: float = spec(1.0, gt=0)
+    """tau of both softmaxes [Q units]."""
+    roll_in: int = spec(0, ge=0)
+    """JSRL: the teacher drives the first h steps of each training episode (greedy), the agent
+    the rest; h starts here and steps down by ``roll_in / roll_in_stages`` whenever the
+    combined policy drives at least ``tolerance`` x its best so far (at first the teacher's)."""
+    roll_in_stages: int = spec(5, ge=1)
+    """Steps of the curriculum from ``roll_in`` down to 0."""
+    roll_in_random: bool = False
+    """JSRL-random: h drawn uniformly from 0..``roll_in`` for each episode, no curriculum."""
+    tolerance: float = spec(0.9, gt=0, le=1)
+    """The roll-in curriculum's gate: share of the best score so far the combined policy must reach."""
+    warm_start: int = spec(0, ge=0)
+    """WSRL: env steps (summed over envs) of the frozen teacher's own rollouts (greedy with the
+    stage's starting epsilon) that fill the stage's buffer before its first update, in place of
+    the random warm-up (``agent.warmup_frames``): no update before both have passed."""
+    check_every: int = spec(5000, ge=1)
+    """Env steps between the student's drives (distillation and curriculum; none without them)."""
+    drive_episodes: int = spec(40, ge=1)
+    """Greedy non-goal drives per check, in the stage-1 drive scenes (the teacher drives them once)."""
+    drive_seed: int = spec(0, ge=0, le=SEED_MAX)
+    """Base of their scene seeds."""
+
+
+@dataclass
+class ModeQDaggerConfig(ModeBConfig):
+    """QDagger's ``mode`` node (``+mode=qdagger``): mode B whose stage 2 distils its stage 1."""
+
+    name: str = "qdagger"
+    """The mode's name (``+mode=qdagger``)."""
+    teacher: TeacherConfig = field(default_factory=lambda: TeacherConfig(distill_weight=1.0))
+
+
+@dataclass
+class ModeJSRLConfig(ModeBConfig):
+    """JSRL's ``mode`` node (``+mode=jsrl``): mode B whose stage 1 drives stage 2's first steps."""
+
+    name: str = "jsrl"
+    """The mode's name (``+mode=jsrl``)."""
+    teacher: TeacherConfig = field(default_factory=lambda: TeacherConfig(roll_in=150))
+
+
+@dataclass
+class ModeWSRLConfig(ModeBConfig):
+    """WSRL's ``mode`` node (``+mode=wsrl``): mode B whose stage 2 starts on its stage 1's rollouts."""
+
+    name: str = "wsrl"
+    """The mode's name (``+mode=wsrl``)."""
+    teacher: TeacherConfig = field(default_factory=lambda: TeacherConfig(warm_start=4800))
+
+
 SMOKE_DEMOS = {"example": {"episodes": 12}}
 """The smoke preset's prior knowledge: the default recipe, 12 episodes (about 1,000 transitions)."""
 
@@ -564,6 +630,34 @@ register_mode(ModeSpec(
 (``B2``) starts from its weights with a fresh Adam and trains as Default, keeping
 ``stage2.demo_fraction`` of the buffer for the prior knowledge with the margin loss on it
 (0 / 0: the paper's B)."""
+
+def _teacher_stages(tag: str) -> tuple[StageSpec, StageSpec]:
+    """Mode B's two stages under the names ``<tag>1``, ``<tag>2``, stage 2 with its teacher and
+    (QDagger) the distillation term."""
+    from memrl.losses import distill_terms
+
+    b1, b2 = MODES["B"].stages
+    return (replace(b1, name=f"{tag}1"),
+            replace(b2, name=f"{tag}2", teacher=lambda m: m.teacher,
+                    terms=lambda m: (*_td_and_margin(m.stage2.margin_weight, m.stage1.margin),
+                                     *distill_terms(m.teacher.distill_weight, m.teacher.temperature))))
+
+
+TEACHER_PRESETS = {k: v for k, v in B_PRESETS.items() if k != "paper"}
+"""The teacher modes' presets: mode B's, less ``paper`` (the paper has no teacher)."""
+
+register_mode(ModeSpec("qdagger", "QDagger", _teacher_stages("Q"), schema=ModeQDaggerConfig,
+                       presets=TEACHER_PRESETS))
+"""QDagger: mode B whose stage 2 adds a distillation term towards its frozen stage 1, its weight
+falling to 0 as the student's drives reach the teacher's (``mode.teacher``)."""
+
+register_mode(ModeSpec("jsrl", "JSRL", _teacher_stages("J"), schema=ModeJSRLConfig, presets=TEACHER_PRESETS))
+"""JSRL: mode B whose frozen stage 1 drives the first h steps of stage 2's training episodes, h
+shrinking on a curriculum gated by the combined policy's drives (``mode.teacher``)."""
+
+register_mode(ModeSpec("wsrl", "WSRL", _teacher_stages("W"), schema=ModeWSRLConfig, presets=TEACHER_PRESETS))
+"""WSRL: mode B whose stage 2's buffer is first filled with its frozen stage 1's own rollouts
+(``mode.teacher.warm_start`` env steps), in place of the random warm-up."""
 
 register_mode(ModeSpec(
     "R", "R",

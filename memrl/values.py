@@ -43,8 +43,12 @@ class QFunctions:
     """
 
     def __init__(self, loss_module: Any, qnet: nn.Module, batch: TensorDictBase,
-                 keep_batch_q: bool = True) -> None:
+                 keep_batch_q: bool = True, teacher: nn.Module | None = None,
+                 teacher_scale: float = 0.0) -> None:
         self._loss, self.qnet, self.batch = loss_module, qnet, batch
+        self.teacher, self.teacher_scale = teacher, float(teacher_scale)
+        """The stage's frozen teacher network (None: none) and the current weight factor of
+        its distillation (:class:`memrl.losses.DistillTerm`)."""
         self._keep = keep_batch_q  # False: no later term reads batch_q (no hook on DQNLoss's call)
         self.batch_q: torch.Tensor | None = None
         """Online Q-values of the batch's ``pixels`` with gradients (None until a term computed them)."""
@@ -67,7 +71,8 @@ class QFunctions:
         """The same learner seen through ``net``, a part of :attr:`qnet` (a crash-risk critic's
         value head, :mod:`memrl.modules.risk`): its outputs, online and target, and its forward
         for the hooks; a fresh :attr:`batch_q` and :attr:`td_error`."""
-        return QFunctions(self._loss, net, self.batch, keep_batch_q=self._keep)
+        return QFunctions(self._loss, net, self.batch, keep_batch_q=self._keep,
+                          teacher=self.teacher, teacher_scale=self.teacher_scale)
 
     def target_params(self) -> Any:
         """A context in which :attr:`qnet` (and its parts) holds the target network's weights."""

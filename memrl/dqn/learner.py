@@ -111,6 +111,10 @@ class Learner:
             self.loss_module, value_network_update_interval=cfg.target_update_interval - 1)
         self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.lr)
         self.updates = 0
+        self.teacher: torch.nn.Module | None = None
+        """A frozen teacher network the stage distils (:mod:`memrl.dqn.teacher`; None: none)."""
+        self.teacher_scale = 0.0
+        """The distillation's current weight factor (the teacher's schedule sets it)."""
 
     def loss(self, batch: TensorDictBase) -> torch.Tensor:
         """The stage's loss on a batch (differentiable): the sum of its terms, in their order,
@@ -133,7 +137,8 @@ class Learner:
 
     def q_functions(self, batch: TensorDictBase) -> QFunctions:
         """What the terms see of the online and target networks on ``batch``."""
-        return QFunctions(self.loss_module, self.qnet, batch, keep_batch_q=len(self.terms) > 1)
+        return QFunctions(self.loss_module, self.qnet, batch, keep_batch_q=len(self.terms) > 1,
+                          teacher=self.teacher, teacher_scale=self.teacher_scale)
 
     def start_stage(self, terms: tuple[LossTerm, ...], lr: float | None = None,
                     fresh_optimizer: bool = False) -> None:

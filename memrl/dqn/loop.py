@@ -29,7 +29,7 @@ from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
 from memrl.checkpoint import resume as ckpt
-from memrl.checkpoint import offline_state, save_offline, save_qnet, stage1_source
+from memrl.checkpoint import load_stage1_qnet, offline_state, save_offline, save_qnet, stage1_source
 from memrl.checkpoint.weights import load_weights
 from memrl.data.buffers import priority_sampler
 from memrl.data.priority_sampler import reprioritize
@@ -41,6 +41,7 @@ from memrl.dqn.records import RunRecords
 from memrl.dqn.schedule import Budget, UpdateSchedule
 from memrl.dqn.self_play import SelfPlayPool
 from memrl.dqn.stage1 import Stage1Checks, Stage1Progress
+from memrl.dqn.teacher import Teacher
 from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
@@ -118,7 +119,8 @@ class Trainer:
         self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=network)
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),
                                   int(cfg.agent.threads))
-        self.schedule = UpdateSchedule(int(cfg.agent.train_every), int(cfg.agent.warmup_frames))
+        self.schedule = UpdateSchedule(int(cfg.agent.train_every), max(int(cfg.agent.warmup_frames),
+                                                                       self._warm_start()))
         self.budget = Budget(cfg.total_frames, cfg.total_episodes)
         self.self_play = SelfPlayPool(int(cfg.self_play_every or 0),
                                       self.collector.learned_controller(), out_dir, cfg.env)
@@ -152,6 +154,8 @@ class Trainer:
                     self.stage.buffer.extend(part)
                 self._episodes_done(steps.episodes)
                 self.periodic.after_steps(self.learner.qnet, c.episodes, c.frames)
+                if self.teacher is not None and self.teacher.after_steps(self.learner.qnet, c.frames):
+                    self.learner.teacher_scale = self.teacher.state.scale
                 bar.update(len(steps.episodes) if self.budget.total_episodes is not None
                            else steps.frames)
                 if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
@@ -219,13 +223,20 @@ class Trainer:
 
     @torch.no_grad()
     def _act(self, td: TensorDictBase, frames: int) -> None:
-        """Random actions during warm-up, then the acting network with epsilon-greedy."""
+        """Random actions during warm-up (a teacher's warm start: its own), then the acting
+        network with epsilon-greedy (a teacher's roll-ins: its actions first)."""
+        teacher = self.teacher
+        if teacher is not None and teacher.warming(frames):
+            teacher.act_warm(td, self.stage.explore)
+            return
         if frames < self.schedule.warmup_frames:
             td["action"] = torch.randint(N_ACTIONS, td.shape, device=td.device)
             return
         assert self.acting is not None and self.stage.explore is not None
         self.acting(td)
         self.stage.explore.step(self.num_envs)
+        if teacher is not None:
+            teacher.roll_in(td, self.collector.length)
 
     def _episodes_done(self, ends: list[EpisodeEnd]) -> None:
         """Rows, self-play snapshots and periodic evaluations of finished episodes."""
@@ -259,6 +270,23 @@ class Trainer:
                                            self.offline_progress) if self.stage.offline else None
         self.acting: TensorDictSequential | None = None if self.stage.offline else TensorDictSequential(
             self.rounds.acting_net, self.stage.explore)
+        self.teacher = self._teacher_of(self.stage)
+        self.learner.teacher = None if self.teacher is None else self.teacher.net
+        self.learner.teacher_scale = 0.0 if self.teacher is None else self.teacher.state.scale
+
+    def _teacher_of(self, stage: Stage) -> Teacher | None:
+        """The online stage's teacher (:mod:`memrl.dqn.teacher`): the run's own stage-1 weights,
+        frozen; None for a stage without one."""
+        settings = stage.spec.teacher(self.cfg.mode)
+        if settings is None or stage.offline:
+            return None
+        net = load_stage1_qnet(self.out_dir / "checkpoints")
+        return Teacher(settings, net, self.cfg.env, self.num_envs, int(self.cfg.seed), self.device, self.out_dir)
+
+    def _warm_start(self) -> int:
+        """Env steps of the online stage's teacher warm start (0: none); its updates start after them."""
+        online = [s.teacher(self.cfg.mode) for s in self.spec.stages if not s.offline]
+        return max((int(t.warm_start) for t in online if t is not None), default=0)
 
     @property
     def _offline_settings(self) -> Any:
@@ -369,6 +397,7 @@ class Trainer:
             "recent": list(self._recent),
             "rng": ckpt.rng_state(),
             "stage1_best": self.offline_checks.best if self.offline_checks is not None else None,
+            "teacher": self.teacher.state_dict() if self.teacher is not None else None,
             "wall_s": self._trained_s(time.perf_counter() - self._t_start),
         }
         agent_part = getattr(self.stage.buffer, "online_buffer", self.stage.buffer)  # not the demos
@@ -392,6 +421,9 @@ class Trainer:
         self._set_stage(self.counters.stage)
         if self.offline_checks is not None:
             self.offline_checks.best = state.get("stage1_best")
+        if self.teacher is not None and state.get("teacher") is not None:
+            self.teacher.load_state_dict(state["teacher"])
+            self.learner.teacher_scale = self.teacher.state.scale
         if self.stage.explore is not None:
             self.stage.explore.load_state_dict(state["explore"])
         if (where / "buffer").exists():

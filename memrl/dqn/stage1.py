@@ -90,29 +90,31 @@ def agreement_parts(qnet: torch.nn.Module, held_out: TensorDictBase,
 
 
 def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int], batch: int = 10, *,
-                 device: torch.device | str | None = None) -> dict[str, int]:
+                 device: torch.device | str | None = None, actor: Any = None) -> dict[str, int]:
     """The behaviour itself: the greedy agent drives one non-goal episode among 0-5
     constant-speed cars (the protocol's rules on the run's env) per reset seed; returns the
     counts of ``survived``, ``reached`` (the target lane) and ``both`` in the same episode.
 
     The episodes run on the batched engine, all at once on ``device`` (None: the network's
     device; ``batch``: envs in lockstep on the gym path, used only when the engine cannot draw
-    the env's frames)."""
+    the env's frames); ``actor``: another actor in its place (JSRL's combined policy)."""
     duration = int(env_cfg.get("duration", LaneChangeConfig.duration))  # the run's length
     protocol = ProtocolConfig(episodes=len(seeds), initial_lanes=["non_goal"], duration=duration)
     job = Job(protocol_env(env_cfg, protocol, "non_goal"), "non_goal", list(enumerate(seeds)))
     device = device if device is not None else module_device(qnet)
-    records = run_jobs(GreedyActor(qnet), [job], batch=batch, device=device).records  # type: ignore[arg-type]
+    actor = GreedyActor(qnet) if actor is None else actor
+    records = run_jobs(actor, [job], batch=batch, device=device).records  # type: ignore[arg-type]
     return {"survived": sum(r.survived for r in records), "reached": sum(r.goal for r in records),
             "both": sum(r.survived and r.goal for r in records)}
 
 
 def drive_check(qnet: torch.nn.Module, env_cfg: Any, episodes: int, seed: int = 0,
-                batch: int = 10, *, device: torch.device | str | None = None) -> dict[str, int]:
+                batch: int = 10, *, device: torch.device | str | None = None, actor: Any = None) -> dict[str, int]:
     """:func:`drive_counts` over ``episodes`` scenes of their own seed domain (``stage1``),
     apart from the training, periodic and Table III scenes, so choosing weights by it does
     not tune on the test scenes."""
-    return drive_counts(qnet, env_cfg, scenario_seeds(seed, episodes, domain="stage1"), batch, device=device)
+    return drive_counts(qnet, env_cfg, scenario_seeds(seed, episodes, domain="stage1"), batch, device=device,
+                        actor=actor)
 
 
 def stop_reason(cfg: Stage1Config, progress: Stage1Progress) -> str:

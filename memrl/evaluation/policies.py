@@ -95,6 +95,32 @@ class GreedyActor(Actor):
         return self.policy.act_batch(torch.from_numpy(pixels)).cpu().numpy()
 
 
+class RollInActor(GreedyActor):
+    """JSRL's combined policy: ``teacher`` greedy for the first ``h`` steps of each episode,
+    then ``net`` greedy; it needs each episode's step (``act_steps``), which the batched
+    engine gives (:func:`memrl.evaluation.engine_runner.run_jobs_on_engine`)."""
+
+    gives_values = False
+
+    def __init__(self, teacher: torch.nn.Module, net: torch.nn.Module, h: int,
+                 device: torch.device | str = "cpu") -> None:
+        super().__init__(net, device)
+        self.teacher, self.h = GreedyPolicy(teacher, device), int(h)
+
+    def to(self, device: torch.device | str) -> RollInActor:
+        self.teacher.to(device)
+        super().to(device)
+        return self
+
+    def act_steps(self, pixels: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+        """Actions ``[N]`` for observations at episode steps ``steps`` ``[N]`` (0: the first)."""
+        own, guide = self.policy.act_batch(pixels), self.teacher.act_batch(pixels)
+        return torch.where(steps.to(own.device) < self.h, guide, own)
+
+    def act(self, slots: Sequence[int], envs: Sequence[LaneChangeEnv], pixels: np.ndarray) -> np.ndarray:
+        raise TypeError("RollInActor acts on the batched engine only (it needs each episode's step)")
+
+
 def run_gamma(cfg: dict[str, Any]) -> float | None:
     """The discount a run's Q-values estimate: its config's ``agent.gamma`` (None when the
     config records none: the crash-sight section is then not recorded)."""
