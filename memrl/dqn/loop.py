@@ -127,6 +127,8 @@ class Trainer:
         self.records = RunRecords(out_dir, logger, echo=not drawn(cfg.progress))
         self.periodic = PeriodicEvaluation(cfg.eval, cfg.env, out_dir, self.records.log)
         self.counters = Counters(stage=self.spec.stages[0].name)
+        self.weights_dir = out_dir / "checkpoints"
+        """Where the run's stage-1 weights are (a stage's teacher): this run's, or the resumed run's."""
         self.offline_progress = Stage1Progress()
         self._set_stage(self.counters.stage)
         self._acc: dict[str, list[float]] = {"loss": [], "demo": []}
@@ -280,7 +282,7 @@ class Trainer:
         settings = stage.spec.teacher(self.cfg.mode)
         if settings is None or stage.offline:
             return None
-        net = load_stage1_qnet(self.out_dir / "checkpoints")
+        net = load_stage1_qnet(self.weights_dir)
         return Teacher(settings, net, self.cfg.env, self.num_envs, int(self.cfg.seed), self.device, self.out_dir)
 
     def _warm_start(self) -> int:
@@ -312,6 +314,7 @@ class Trainer:
         self.offline_checks.finish(self.learner.loss_module)
         path = save_offline(self.out_dir / "checkpoints", self.learner.loss_module, self.learner.qnet,
                             dataclasses.asdict(self.offline_progress))
+        self.weights_dir = path.parent  # the next stage's teacher, where it has one
         self.learner.sync_target()
         done, following = self.counters.stage, self.spec.next_stage(self.counters.stage)
         assert following is not None, "an offline stage is followed by the stage it trains for"
@@ -418,6 +421,7 @@ class Trainer:
         self.counters = Counters(**counters)
         self.offline_progress = Stage1Progress(**state["stage1"])
         self.learner.load_state_dict(state["learner"])
+        self.weights_dir = Path(run_dir) / "checkpoints"
         self._set_stage(self.counters.stage)
         if self.offline_checks is not None:
             self.offline_checks.best = state.get("stage1_best")
