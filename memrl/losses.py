@@ -20,8 +20,8 @@ from tensordict import TensorDictBase
 from memrl.modules.qnet import TDTerm, head_td_term, target_action_gap
 from memrl.values import QFunctions, network_outputs
 
-__all__ = ["DistillTerm", "LossTerm", "MarginTerm", "distill_kl", "distill_terms", "QFunctions", "TDTerm", "margin_terms",
-           "target_action_gap", "td_term"]
+__all__ = ["DistillTerm", "LossTerm", "MarginTerm", "QFunctions", "TDTerm", "distill_kl", "distill_terms",
+           "margin_terms", "target_action_gap", "td_term"]
 
 
 class LossTerm(Protocol):

@@ -631,6 +631,16 @@ register_mode(ModeSpec(
 ``stage2.demo_fraction`` of the buffer for the prior knowledge with the margin loss on it
 (0 / 0: the paper's B)."""
 
+register_mode(ModeSpec(
+    "R", "R",
+    (StageSpec("R", demo_share=lambda m: m.demo_fraction,
+               terms=lambda m: _td_and_margin(m.margin_weight, m.margin)),),
+    schema=ModeRConfig, presets={"smoke": SMOKE_DEMOS}))
+"""Mode R: RLPD's symmetric sampling, prior knowledge at half of every batch from the first
+update, no offline stage; the margin term optional (``margin_weight``, off). The worked example
+of a mode in ``docs/extending.md``: this declaration and ``conf/mode/R.yaml``."""
+
+
 def _teacher_stages(tag: str) -> tuple[StageSpec, StageSpec]:
     """Mode B's two stages under the names ``<tag>1``, ``<tag>2``, stage 2 with its teacher and
     (QDagger) the distillation term."""
@@ -639,8 +649,8 @@ def _teacher_stages(tag: str) -> tuple[StageSpec, StageSpec]:
     b1, b2 = MODES["B"].stages
     return (replace(b1, name=f"{tag}1"),
             replace(b2, name=f"{tag}2", teacher=lambda m: m.teacher,
-                    terms=lambda m: (*_td_and_margin(m.stage2.margin_weight, m.stage1.margin),
-                                     *distill_terms(m.teacher.distill_weight, m.teacher.temperature))))
+                    terms=lambda m: (*b2.terms(m), *distill_terms(m.teacher.distill_weight,
+                                                                  m.teacher.temperature))))
 
 
 TEACHER_PRESETS = {k: v for k, v in B_PRESETS.items() if k != "paper"}
@@ -658,12 +668,3 @@ shrinking on a curriculum gated by the combined policy's drives (``mode.teacher`
 register_mode(ModeSpec("wsrl", "WSRL", _teacher_stages("W"), schema=ModeWSRLConfig, presets=TEACHER_PRESETS))
 """WSRL: mode B whose stage 2's buffer is first filled with its frozen stage 1's own rollouts
 (``mode.teacher.warm_start`` env steps), in place of the random warm-up."""
-
-register_mode(ModeSpec(
-    "R", "R",
-    (StageSpec("R", demo_share=lambda m: m.demo_fraction,
-               terms=lambda m: _td_and_margin(m.margin_weight, m.margin)),),
-    schema=ModeRConfig, presets={"smoke": SMOKE_DEMOS}))
-"""Mode R: RLPD's symmetric sampling, prior knowledge at half of every batch from the first
-update, no offline stage; the margin term optional (``margin_weight``, off). The worked example
-of a mode in ``docs/extending.md``: this declaration and ``conf/mode/R.yaml``."""

@@ -198,13 +198,15 @@ def test_stage_2_with_a_critic_starts_from_a_stage_1_trained_without_one(compose
     now = trainer.learner.loss_module.state_dict()
     base = {k.replace(".module.base.", ".module."): v for k, v in now.items() if ".module.base." in k}
     assert base.keys() == {k for k in s1 if ".module.0.module." in k}
-    online = {k.removeprefix("target_"): v for k, v in s1.items() if k.startswith("value_network")}
-    assert all(torch.equal(v, online[k.removeprefix("target_")]) for k, v in base.items())  # synced at the switch
+    online = {k: v for k, v in s1.items() if k.startswith("value_network")}
+    # online and target (synced at the switch): the stage 1's online weights
+    assert all(torch.equal(v, online[k.removeprefix("target_")]) for k, v in base.items())
     critic = [k for k in now if ".critic." in k]
     assert critic and all(torch.equal(now[k], fresh[k]) for k in critic)  # its own initial weights
     # a stage 1 of another architecture is refused, naming both
     with open_dict(cfg):
         cfg.network.base.hidden = 128
     with pytest.raises(ValueError, match=r"config 'mode.stage1.init': .*its network QNetwork\(\) is not "
-                                         r"this run's RiskQNetwork\(.*\) nor its base head QNetwork\(hidden=128\)"):
+                                         r"this run's RiskQNetwork\(.*\) nor its base head "
+                                         r"QNetwork\(hidden=128\)"):
         check_train(cfg)

@@ -51,10 +51,12 @@ def test_the_distillation_term_weighs_the_agents_own_states_by_the_current_scale
     value.backward()
     assert student.q.grad is not None and float(student.q.grad.abs().sum()) > 0
     # nothing at scale 0, without a teacher, or on demos alone
-    assert DistillTerm(2.0)(batch, QFunctions(None, student, batch, teacher=teacher, teacher_scale=0.0)) is None
+    unscaled = QFunctions(None, student, batch, teacher=teacher, teacher_scale=0.0)
+    assert DistillTerm(2.0)(batch, unscaled) is None
     assert DistillTerm(2.0)(batch, QFunctions(None, student, batch)) is None
     demos = batch.clone().set("is_demo", torch.ones(4, 1, dtype=torch.bool))
-    assert DistillTerm(2.0)(demos, QFunctions(None, student, demos, teacher=teacher, teacher_scale=1.0)) is None
+    on_demos = QFunctions(None, student, demos, teacher=teacher, teacher_scale=1.0)
+    assert DistillTerm(2.0)(demos, on_demos) is None
 
 
 def test_the_distillation_weight_falls_with_the_students_drives_and_never_rises(tmp_path, monkeypatch):

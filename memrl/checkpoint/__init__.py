@@ -40,7 +40,7 @@ from memrl.checkpoint.policy import GreedyQPolicy, load_policy
 from memrl.checkpoint.resume import recorded_config
 from memrl.checkpoint.weights import CHECKSUM_KEY, load_weights, save_weights
 
-__all__ = ["CHECKSUM_KEY", "OFFLINE_WEIGHTS", "CheckpointError", "GreedyQPolicy", "LearnedCarController",
-           "OpponentPoolError", "check_stage1", "describe", "load_policy", "load_qnet", "load_stage1_qnet", "offline_state",
-           "load_weights", "qnet_from", "qnet_weights", "recorded_config", "resolve", "save_offline",
-           "save_qnet", "save_weights", "stage1_file", "stage1_source", "stored_arch"]
+__all__ = ["CHECKSUM_KEY", "CheckpointError", "GreedyQPolicy", "LearnedCarController", "OFFLINE_WEIGHTS",
+           "OpponentPoolError", "check_stage1", "describe", "load_policy", "load_qnet", "load_stage1_qnet",
+           "load_weights", "offline_state", "qnet_from", "qnet_weights", "recorded_config", "resolve",
+           "save_offline", "save_qnet", "save_weights", "stage1_file", "stage1_source", "stored_arch"]

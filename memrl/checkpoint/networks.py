@@ -142,7 +142,8 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     if network is not None:
         stored = stored_arch(state)
         with torch.random.fork_rng(devices=[]):  # building draws initial weights
-            ours, base = arch_of(build_qnet(network)), base_arch(network)
+            ours = arch_of(build_qnet(network))
+        base = base_arch(network)  # draws in its own forked generator
         if stored not in (ours, base):
             nor = f" nor its base head {describe(base)}" if base is not None else ""
             raise CheckpointError(f"{file}: its network {describe(stored)} is not this run's "

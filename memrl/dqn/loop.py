@@ -28,8 +28,8 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from tqdm import tqdm
 
-from memrl.checkpoint import resume as ckpt
 from memrl.checkpoint import load_stage1_qnet, offline_state, save_offline, save_qnet, stage1_source
+from memrl.checkpoint import resume as ckpt
 from memrl.checkpoint.weights import load_weights
 from memrl.data.buffers import priority_sampler
 from memrl.data.priority_sampler import reprioritize
@@ -157,7 +157,7 @@ class Trainer:
                 self._episodes_done(steps.episodes)
                 self.periodic.after_steps(self.learner.qnet, c.episodes, c.frames)
                 if self.teacher is not None and self.teacher.after_steps(self.learner.qnet, c.frames):
-                    self.learner.teacher_scale = self.teacher.state.scale
+                    self._teach()
                 bar.update(len(steps.episodes) if self.budget.total_episodes is not None
                            else steps.frames)
                 if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
@@ -273,6 +273,10 @@ class Trainer:
         self.acting: TensorDictSequential | None = None if self.stage.offline else TensorDictSequential(
             self.rounds.acting_net, self.stage.explore)
         self.teacher = self._teacher_of(self.stage)
+        self._teach()
+
+    def _teach(self) -> None:
+        """The learner's distillation sees the stage's teacher and its schedule's current scale."""
         self.learner.teacher = None if self.teacher is None else self.teacher.net
         self.learner.teacher_scale = 0.0 if self.teacher is None else self.teacher.state.scale
 
@@ -283,7 +287,8 @@ class Trainer:
         if settings is None or stage.offline:
             return None
         net = load_stage1_qnet(self.weights_dir)
-        return Teacher(settings, net, self.cfg.env, self.num_envs, int(self.cfg.seed), self.device, self.out_dir)
+        return Teacher(settings, net, self.cfg.env, self.num_envs, int(self.cfg.seed), self.device,
+                       self.out_dir)
 
     def _warm_start(self) -> int:
         """Env steps of the online stage's teacher warm start (0: none); its updates start after them."""
@@ -427,7 +432,7 @@ class Trainer:
             self.offline_checks.best = state.get("stage1_best")
         if self.teacher is not None and state.get("teacher") is not None:
             self.teacher.load_state_dict(state["teacher"])
-            self.learner.teacher_scale = self.teacher.state.scale
+            self._teach()
         if self.stage.explore is not None:
             self.stage.explore.load_state_dict(state["explore"])
         if (where / "buffer").exists():

@@ -109,7 +109,8 @@ def drive_counts(qnet: torch.nn.Module, env_cfg: Any, seeds: list[int], batch: i
 
 
 def drive_check(qnet: torch.nn.Module, env_cfg: Any, episodes: int, seed: int = 0,
-                batch: int = 10, *, device: torch.device | str | None = None, actor: Any = None) -> dict[str, int]:
+                batch: int = 10, *, device: torch.device | str | None = None,
+                actor: Any = None) -> dict[str, int]:
     """:func:`drive_counts` over ``episodes`` scenes of their own seed domain (``stage1``),
     apart from the training, periodic and Table III scenes, so choosing weights by it does
     not tune on the test scenes."""

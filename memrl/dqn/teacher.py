@@ -104,8 +104,7 @@ class Teacher:
     def act_warm(self, td: TensorDictBase, explore: Any) -> None:
         """Warm start: the teacher's action, then the stage's epsilon-greedy at its current
         value (not stepped)."""
-        td["action"] = self.greedy(td["pixels"]).reshape(td["action"].shape if "action" in td.keys()
-                                                         else td.batch_size)
+        td["action"] = self.greedy(td["pixels"]).reshape(td.shape)
         explore(td)
 
     @torch.no_grad()
@@ -118,22 +117,25 @@ class Teacher:
         if bool(self.cfg.roll_in_random):
             new = lengths == 0  # an episode's first step: its h
             if bool(new.any()):
-                draws = torch.randint(0, int(self.cfg.roll_in) + 1, (int(new.sum()),), generator=self.generator)
+                draws = torch.randint(0, int(self.cfg.roll_in) + 1, (int(new.sum()),),
+                                      generator=self.generator)
                 self.h_env[new] = draws.to(self.device)
         else:
             self.h_env.fill_(self.state.h)
         guided = lengths < self.h_env
         if bool(guided.any()):
             action = td["action"]
-            td["action"] = torch.where(guided.reshape(action.shape), self.greedy(td["pixels"]).reshape(action.shape),
-                                       action)
+            guide = self.greedy(td["pixels"]).reshape(action.shape)
+            td["action"] = torch.where(guided.reshape(action.shape), guide, action)
 
     # ------------------------------------------------------------------ checks
     def after_steps(self, student: nn.Module, frames: int) -> bool:
         """At ``frames`` env steps of the stage: the due check of the student, which moves the
         distillation's scale and the curriculum's h; returns whether one was made."""
         s, cfg = self.state, self.cfg
-        if not needs_drives(cfg) or frames < s.next_check:
+        distilling = float(cfg.distill_weight) > 0 and s.scale > 0  # a scale of 0 stays 0
+        curriculum = int(cfg.roll_in) > 0 and not bool(cfg.roll_in_random) and s.h > 0  # h = 0 stays 0
+        if not (distilling or curriculum) or frames < s.next_check:
             return False
         while s.next_check <= frames:
             s.next_check += int(cfg.check_every)
@@ -141,13 +143,11 @@ class Teacher:
             s.teacher_both = self._drive(self.net)
             s.best = s.teacher_both
         row: dict[str, Any] = {"env_steps": frames}
-        if float(cfg.distill_weight) > 0:
+        if distilling:
             row["student"] = self._drive(student)
             s.scale = min(s.scale, distill_scale(row["student"], s.teacher_both))
-        if int(cfg.roll_in) > 0 and not bool(cfg.roll_in_random):
-            combined = row.get("student") if s.h == 0 else None
-            if combined is None:
-                combined = self._drive(student, s.h)
+        if curriculum:
+            combined = self._drive(student, s.h)
             row["combined"], row["h_driven"] = combined, s.h
             s.h, s.best = curriculum_step(s.h, combined, s.best, int(cfg.roll_in), int(cfg.roll_in_stages),
                                           float(cfg.tolerance))
@@ -161,7 +161,8 @@ class Teacher:
     def _drive(self, student: nn.Module, h: int | None = None) -> int:
         """Drives of ``student`` (with ``h``: the combined policy) that survived and reached."""
         actor = None if h is None else RollInActor(self.net, student, h)
-        return int(drive_check(student, self.env_cfg, int(self.cfg.drive_episodes), int(self.cfg.drive_seed),
+        cfg = self.cfg
+        return int(drive_check(student, self.env_cfg, int(cfg.drive_episodes), int(cfg.drive_seed),
                                actor=actor)["both"])
 
     def write(self) -> None:

@@ -158,7 +158,7 @@ def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None =
             if record:
                 actions, outputs = actor.act_values(batch_px)
                 actions = actions.to(dev)
-            elif hasattr(actor, "act_steps"):  # acts on each episode's step too (a roll-in)
+            elif actor.needs_steps:
                 steps = [lane.steps[lane.active] for lane in live]
                 actions = actor.act_steps(batch_px, torch.cat(steps)).to(dev)
             else:

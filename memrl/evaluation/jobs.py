@@ -37,6 +37,9 @@ class Actor(ABC):
     tensor_policy: bool = False
     """Acts from a batch of pixels alone (:meth:`act_pixels`, no env object, no per-episode
     state): :func:`run_jobs` then runs it on the batched engine."""
+    needs_steps: bool = False
+    """Acts on each episode's step too (:meth:`act_steps`, a roll-in's hand-over at step h):
+    the batched engine gives it."""
     gives_values: bool = False
     """Can hand out the network outputs it acts on (:meth:`act_values`): the runners' ``record``
     then keeps them per step (:class:`~memrl.evaluation.crash_sight.EpisodeTrace`)."""
@@ -51,6 +54,11 @@ class Actor(ABC):
     def act_pixels(self, pixels: torch.Tensor) -> torch.Tensor:
         """Actions (int64 ``[B]``) of uint8 stacks ``[B, 4, H, W]`` (``tensor_policy`` actors)."""
         raise NotImplementedError(f"{type(self).__name__} acts through the env (act)")
+
+    def act_steps(self, pixels: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+        """Actions (int64 ``[B]``) of uint8 stacks at episode steps ``steps`` ``[B]`` (0: an
+        episode's first; ``needs_steps`` actors)."""
+        return self.act_pixels(pixels)
 
     def act_values(self, pixels: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Actions (int64 ``[B]``) of uint8 stacks ``[B, 4, H, W]`` and the outputs they were

@@ -101,6 +101,7 @@ class RollInActor(GreedyActor):
     engine gives (:func:`memrl.evaluation.engine_runner.run_jobs_on_engine`)."""
 
     gives_values = False
+    needs_steps = True
 
     def __init__(self, teacher: torch.nn.Module, net: torch.nn.Module, h: int,
                  device: torch.device | str = "cpu") -> None:
