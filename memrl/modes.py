@@ -274,6 +274,8 @@ def explain_key_error(err: BaseException) -> str | None:
         return None
     key = m.group(1)
     owners = [s for s in MODES.values() if s.has_key(key.removeprefix("mode."))]
+    # a mode whose schema extends another owner's (qdagger of B) has the key by inheritance
+    owners = [o for o in owners if not any(p is not o and issubclass(o.schema, p.schema) for p in owners)]
     if not owners:
         return None
     cause = err.__cause__
@@ -644,13 +646,18 @@ of a mode in ``docs/extending.md``: this declaration and ``conf/mode/R.yaml``.""
 def _teacher_stages(tag: str) -> tuple[StageSpec, StageSpec]:
     """Mode B's two stages under the names ``<tag>1``, ``<tag>2``, stage 2 with its teacher and
     (QDagger) the distillation term."""
-    from memrl.losses import distill_terms
-
     b1, b2 = MODES["B"].stages
     return (replace(b1, name=f"{tag}1"),
             replace(b2, name=f"{tag}2", teacher=lambda m: m.teacher,
-                    terms=lambda m: (*b2.terms(m), *distill_terms(m.teacher.distill_weight,
-                                                                  m.teacher.temperature))))
+                    terms=lambda m: (*b2.terms(m), *_distill(m.teacher))))
+
+
+def _distill(teacher: Any) -> tuple[Any, ...]:
+    """QDagger's distillation term where ``teacher.distill_weight`` is positive (importing the
+    terms, and torch, only when a stage is built)."""
+    from memrl.losses import distill_terms
+
+    return tuple(distill_terms(teacher.distill_weight, teacher.temperature))
 
 
 TEACHER_PRESETS = {k: v for k, v in B_PRESETS.items() if k != "paper"}

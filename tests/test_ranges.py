@@ -37,6 +37,9 @@ PLACES: dict[str, tuple[str, tuple[str, ...], str]] = {
     "mode_schema/A": ("train", ("+mode=A",), "mode."),
     "mode_schema/B": ("train", ("+mode=B",), "mode."),
     "mode_schema/R": ("train", ("+mode=R",), "mode."),
+    "mode_schema/qdagger": ("train", ("+mode=qdagger",), "mode."),
+    "mode_schema/jsrl": ("train", ("+mode=jsrl",), "mode."),
+    "mode_schema/wsrl": ("train", ("+mode=wsrl",), "mode."),
 }
 """Registered group schema -> (command, overrides, prefix of its keys) where its start check runs;
 ``<command>_schema`` is the command's own top level."""
