@@ -54,7 +54,7 @@ def _e2e(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import e2e
 
     values: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
-    for key in ("overlap", "num_envs", "gpu_num_envs", "gpu_batch_sizes"):
+    for key in ("overlap", "num_envs", "gpu_num_envs", "gpu_batch_sizes", "update_modes", "gpu_update_modes"):
         values[key] = tuple(values[key])
     return e2e.run(**values)
 

@@ -21,6 +21,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from memrl.data.recipe import DemoRecipe
+from memrl.dqn.config import UPDATE_MODES
 from memrl.errors import UserError, config_error, load_run_config
 from memrl.fields import SEED_MAX, _element_ok, _valid, check_fields, spec  # noqa: F401
 from memrl.known_keys import check_known_keys
@@ -498,6 +499,8 @@ class E2EBench:
     gpu_num_envs: list[int] = spec(ge=1)
     gpu_batch_sizes: list[int] = spec(ge=1)
     gpu_total_frames: int = spec(ge=1)
+    update_modes: list[str] = spec(choices=UPDATE_MODES, nonempty=True)
+    gpu_update_modes: list[str] = spec(choices=UPDATE_MODES, nonempty=True)
     device: str = MISSING
     learner_seconds: float = spec(gt=0)
     seed: int = spec(ge=0, le=SEED_MAX)

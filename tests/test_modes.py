@@ -178,13 +178,13 @@ def test_the_stage_losses_equal_the_formula_before_loss_terms(compose_cfg, tmp_p
 
     cfg = compose_cfg("train", preset + SHORT + tiny_mode(mode))
     seen: list[tuple[str, dict, object, float]] = []
-    original = Learner._update
+    original = Learner._eager_grad_step
 
     def spy(self, batch):
         weights = {k: v.clone() for k, v in self.loss_module.state_dict().items()}
         loss = original(self, batch)
         if len(seen) < 40:
-            seen.append((trainer_stage[0], weights, batch.clone(), loss))
+            seen.append((trainer_stage[0], weights, batch.clone(), float(loss)))
         return loss
 
     trainer_stage = ["?"]
@@ -194,7 +194,7 @@ def test_the_stage_losses_equal_the_formula_before_loss_terms(compose_cfg, tmp_p
         trainer_stage[0] = name
         original_set(self, name, fresh_optimizer)
 
-    monkeypatch.setattr(Learner, "_update", spy)
+    monkeypatch.setattr(Learner, "_eager_grad_step", spy)
     monkeypatch.setattr(Trainer, "_set_stage", set_stage)
     train(cfg, tmp_path, demos=demos)
     assert {s for s, *_ in seen} == ({"B1", "B2"} if mode == "B" else {mode or "default"})

@@ -45,38 +45,41 @@ class TimedTrainer(Trainer):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.spans: list[tuple[float, float]] = []
-        update = self.learner.update
+        step = self.learner.step
 
-        def timed(batch: Any) -> float:
+        def timed(batch: Any) -> torch.Tensor:
             t0 = time.perf_counter()
-            loss = update(batch)
+            loss = step(batch)
             self.spans.append((t0, time.perf_counter()))
             return loss
 
-        self.learner.update = timed  # type: ignore[method-assign]
+        self.learner.step = timed  # type: ignore[method-assign]
 
 
 def run(total_frames: int = 1000, learner_seconds: float = 5.0, seed: int = 0,
         overrides: list[str] | None = None, overlap: tuple[bool, ...] = (False, True),
         num_envs: tuple[int, ...] = (1, 16), gpu_num_envs: tuple[int, ...] = (16, 256, 1024),
         gpu_batch_sizes: tuple[int, ...] = (32, 256), gpu_total_frames: int = 200_000,
-        device: str = "auto") -> dict[str, Any]:
+        device: str = "auto", update_modes: tuple[str, ...] = ("eager",),
+        gpu_update_modes: tuple[str, ...] = ("eager", "captured")) -> dict[str, Any]:
     """The smoke preset, side by side in this process: on the CPU for ``total_frames`` env steps
     per env count and ``agent.overlap`` value; on a CUDA device (``device``) for
-    ``gpu_total_frames`` per env count and batch size. Frames/s, updates/s and the learner's
+    ``gpu_total_frames`` per env count and batch size; each with every ``agent.update_mode`` of
+    ``update_modes`` (CPU) or ``gpu_update_modes`` (CUDA). Frames/s, updates/s and the learner's
     busy share of each run."""
     from memrl.envs.batched import resolve_device
 
     dev = resolve_device(device)
     base = [*(overrides or [])]
     runs = [run_one(total_frames, learner_seconds, seed,
-                    [*base, "device=cpu", f"env.num_envs={n}", f"agent.overlap={bool(o)}"])
-            for n in num_envs for o in overlap]
+                    [*base, "device=cpu", f"env.num_envs={n}", f"agent.overlap={bool(o)}",
+                     f"agent.update_mode={m}"])
+            for m in update_modes for n in num_envs for o in overlap]
     if dev.type == "cuda":
         runs += [run_one(gpu_total_frames, learner_seconds, seed,
                          [*base, f"device={dev}", f"env.num_envs={n}", f"agent.batch_size={b}",
-                          "agent.overlap=false", "buffer.capacity=100000"])
-                 for n in gpu_num_envs for b in gpu_batch_sizes]
+                          "agent.overlap=false", "buffer.capacity=100000", f"agent.update_mode={m}"])
+                 for m in gpu_update_modes for n in gpu_num_envs for b in gpu_batch_sizes]
     return {"device": str(dev), "threads": torch.get_num_threads(),
             "cpu": platform.processor() or platform.machine(),
             "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None, "runs": runs}
@@ -107,7 +110,7 @@ def run_one(total_frames: int, learner_seconds: float, seed: int,
         # The reference: the same learner and buffer, updating back to back.
         n, t0 = 0, time.perf_counter()
         while time.perf_counter() - t0 < learner_seconds:
-            trainer.learner.update(trainer.stage.buffer.sample())  # the timed wrapper: a few us
+            trainer.learner.step(trainer.stage.buffer.sample())  # the timed wrapper: a few us
             n += 1
         learner_only = n / (time.perf_counter() - t0)
     torch.set_num_threads(threads_before)
@@ -119,7 +122,8 @@ def run_one(total_frames: int, learner_seconds: float, seed: int,
         "warmup_frames": int(cfg.agent.warmup_frames), "train_every": int(cfg.agent.train_every),
         "batch_size": int(cfg.agent.batch_size),
         "agent_options": {k: cfg.agent[k] for k in ("threads", "channels_last", "compile",
-                                                    "precision", "overlap")},
+                                                    "precision", "overlap", "update_mode",
+                                                    "loss_readback")},
         "wall_s": round(wall, 2),
         "frames_per_s": round(summary.frames / wall, 2),
         "updates_per_s": round(summary.updates / wall, 3),

@@ -16,7 +16,9 @@ rounds; every round's figure is kept):
   ``agent.channels_last``, ``agent.compile``, ``agent.pool_first``, ``agent.precision``);
 - ``memrl_naive``: memrl with those options off (threads: torch's default);
 - ``memrl_tuned``: memrl with its defaults, the training configuration;
-- with ``ablation``, at the first batch size: memrl with each option flipped from its default;
+- with ``ablation``, at the first batch size: memrl with each option flipped from its default,
+  and with the whole gradient step compiled (``agent.update_mode=compiled``; its compile time
+  is in ``warmup_s``);
 - with ``learning``, at the first batch size: memrl with each learning option of
   :data:`LEARNING_OPTIONS` on (its cost per update beside ``memrl_tuned``, the default).
 """
@@ -182,6 +184,23 @@ def _window(step: Callable[[], float], seconds: float) -> tuple[float, int]:
             return n / elapsed, n
 
 
+def _ablation(tuned: DictConfig, tuned_b: DictConfig) -> dict[str, tuple[DictConfig, str]]:
+    """memrl with each speed option flipped from its default, and the other update modes."""
+    specs: dict[str, tuple[DictConfig, str]] = {}
+    specs[f"memrl_threads_{1 if _threads(tuned.threads) != 1 else 2}"] = (
+        agent_variant(tuned_b, threads=1 if _threads(tuned.threads) != 1 else 2), "memrl")
+    specs[f"memrl_channels_last_{not tuned.channels_last}".lower()] = (
+        agent_variant(tuned_b, channels_last=not tuned.channels_last), "memrl")
+    specs[f"memrl_compile_{not tuned.compile}".lower()] = (
+        agent_variant(tuned_b, compile=not tuned.compile), "memrl")
+    for mode in ("eager", "compiled"):  # the whole gradient step (agent.update_mode)
+        if mode != str(tuned.update_mode):
+            specs[f"memrl_update_mode_{mode}"] = (agent_variant(tuned_b, update_mode=mode), "memrl")
+    flipped = "float32" if str(tuned.precision) != "float32" else "bfloat16"
+    specs[f"memrl_precision_{flipped}"] = (agent_variant(tuned_b, precision=flipped), "memrl")
+    return specs
+
+
 def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int = 3,
         warmup_updates: int = 2, buffer_transitions: int = 5000, ablation: bool = True,
         seed: int = 0, learning: bool = True) -> dict[str, Any]:
@@ -206,15 +225,7 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
             "memrl_naive": (naive_b, "memrl"), "memrl_tuned": (tuned_b, "memrl"),
         }
         if ablation and b_i == 0:
-            specs[f"memrl_threads_{1 if _threads(tuned.threads) != 1 else 2}"] = (
-                agent_variant(tuned_b, threads=1 if _threads(tuned.threads) != 1 else 2), "memrl")
-            specs[f"memrl_channels_last_{not tuned.channels_last}".lower()] = (
-                agent_variant(tuned_b, channels_last=not tuned.channels_last), "memrl")
-            specs[f"memrl_compile_{not tuned.compile}".lower()] = (
-                agent_variant(tuned_b, compile=not tuned.compile), "memrl")
-            flipped = "float32" if str(tuned.precision) != "float32" else "bfloat16"
-            specs[f"memrl_precision_{flipped}"] = (agent_variant(tuned_b, precision=flipped),
-                                                   "memrl")
+            specs.update(_ablation(tuned, tuned_b))
         options: dict[str, dict[str, Any]] = {}
         if learning and b_i == 0:
             for name, values in LEARNING_OPTIONS.items():
@@ -233,6 +244,7 @@ def run(batch_sizes: list[int] | None = None, seconds: float = 2.0, rounds: int 
             figures[name] = {"threads": _threads(int(agent.threads)),
                              "channels_last": bool(agent.channels_last),
                              "compile": bool(agent.compile),
+                             "update_mode": str(agent.update_mode),
                              "precision": str(agent.precision),
                              "warmup_s": round(time.perf_counter() - start, 2), "rounds": []}
         for _ in range(rounds):

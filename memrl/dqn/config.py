@@ -17,6 +17,7 @@ from memrl.fields import check_fields, spec
 from memrl.modes import mode_of
 
 PRECISIONS = ("auto", "float32", "bfloat16")
+UPDATE_MODES = ("eager", "compiled", "captured")
 EXPLORATIONS = ("epsilon", "ez_greedy", "ez_speed", "speed_only", "boltzmann")  # memrl/dqn/exploration.py
 
 
@@ -84,6 +85,17 @@ class AgentConfig:
     """``torch.compile`` the Q-network's forward (falls back to eager with a warning if it
     fails). Off: on this CPU it measured no faster than eager channels_last (inductor keeps the
     oneDNN convolutions), and compiling costs 10-70 s at start."""
+    update_mode: str = spec("eager", choices=UPDATE_MODES)
+    """How the whole gradient step runs (:class:`memrl.dqn.learner.Learner`): ``eager``;
+    ``compiled``: the stage's loss terms, backward, gradient clipping and Adam as one
+    ``torch.compile``d function (recompiled when a stage changes its terms or learning rate, or
+    a teacher's scale changes; falls back to eager with a warning if compiling fails);
+    ``captured``: the same compiled with ``mode="reduce-overhead"`` (CUDA graphs) and a
+    capturable Adam, CUDA only. Sampling and the target network's hard copy stay outside."""
+    loss_readback: int = spec(1, ge=1)
+    """Updates between host reads of the loss values (one read of k losses at once): on a GPU,
+    k > 1 keeps the update loop free of a device synchronisation per update. The logged values
+    are the same for any k."""
     precision: str = spec("auto", choices=PRECISIONS)
     """Conv trunk precision: ``float32``; ``bfloat16`` (autocast of the three convs, weights,
     FC head, Q-values and loss stay float32); ``auto``: bfloat16 where the CPU has native

@@ -61,6 +61,16 @@ def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32),
         return False
 
 
+def update_mode(mode: str, device: torch.device) -> str:
+    """``agent.update_mode``, checked against the device (``captured``: CUDA graphs, CUDA only)."""
+    if mode not in ("eager", "compiled", "captured"):
+        raise ValueError(f"agent.update_mode: unknown {mode!r} (eager, compiled, captured)")
+    if mode == "captured" and device.type != "cuda":
+        raise ValueError(f"agent.update_mode=captured needs a CUDA device (device is {device.type}); "
+                         "use agent.update_mode=compiled")
+    return mode
+
+
 class Learner:
     """Online/target Q-networks, optimizer and update step.
 
@@ -102,6 +112,7 @@ class Learner:
             self.qnet.to(memory_format=torch.channels_last)
         self.compiled = bool(cfg.compile) and compile_qnet(
             self.qnet, (1, int(cfg.batch_size)), self.device)
+        self.update_mode = update_mode(str(getattr(cfg, "update_mode", "eager")), self.device)
         self.loss_module = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                                    double_dqn=True, action_space="categorical")
         self.loss_module.make_value_estimator(gamma=cfg.gamma)
@@ -109,7 +120,8 @@ class Learner:
         # so that the copy happens every `target_update_interval` updates exactly.
         self.target_updater = HardUpdate(
             self.loss_module, value_network_update_interval=cfg.target_update_interval - 1)
-        self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.lr)
+        self.optimizer = self._adam()
+        self._grad_step = self._compiled_grad_step()
         self.updates = 0
         self.teacher: torch.nn.Module | None = None
         """A frozen teacher network the stage distils (:mod:`memrl.dqn.teacher`; None: none)."""
@@ -146,37 +158,61 @@ class Learner:
         then its own learning rate ``lr`` when given (None: keep the optimizer's)."""
         self.terms = tuple(terms)
         if fresh_optimizer:
-            self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr)
+            self.optimizer = self._adam()
         if lr is not None:
             for group in self.optimizer.param_groups:
                 group["lr"] = lr
+        self._grad_step = self._compiled_grad_step()  # a new optimizer and terms: a new trace
+
+    def _adam(self) -> torch.optim.Adam:
+        # captured: Adam keeps its step count on the device, as a CUDA graph needs
+        return torch.optim.Adam(self.loss_module.parameters(), lr=self.cfg.lr,
+                                capturable=self.update_mode == "captured")
+
+    def _compiled_grad_step(self) -> Any:
+        """The gradient step this ``update_mode`` runs: :meth:`_eager_grad_step`, or it compiled."""
+        if self.update_mode == "eager":
+            return self._eager_grad_step
+        mode = "reduce-overhead" if self.update_mode == "captured" else None
+        return torch.compile(self._eager_grad_step, dynamic=False, mode=mode)
 
     def update(self, batch: TensorDictBase) -> float:
-        """One gradient step and a target-update tick; returns the loss value."""
+        """One gradient step and a target-update tick; returns the loss value (a host read)."""
+        return float(self.step(batch))
+
+    def step(self, batch: TensorDictBase) -> torch.Tensor:
+        """One gradient step and a target-update tick; returns the loss, detached, where it was
+        computed (no host synchronisation: the trainer reads losses every ``loss_readback``)."""
         try:
-            return self._update(batch)
+            loss = self._grad_step(batch)
         except Exception as err:
-            if not self.compiled:
+            if not self.compiled and self.update_mode == "eager":
                 raise
             # A (re)compilation failed inside the forward or backward, before the optimizer
-            # step: drop the compiled forward and redo this update eagerly.
+            # step: drop the compiled code and redo this update eagerly.
             self.qnet._compiled_call_impl = None
-            self.compiled = False
+            what = "agent.compile" if self.compiled else f"agent.update_mode={self.update_mode}"
+            self.compiled, self.update_mode = False, "eager"
+            self._grad_step = self._eager_grad_step
             self.optimizer.zero_grad(set_to_none=True)
-            warnings.warn(f"agent.compile: compiled update failed ({type(err).__name__}: {err}); "
+            warnings.warn(f"{what}: compiled update failed ({type(err).__name__}: {err}); "
                           "running eager", RuntimeWarning, stacklevel=2)
-            return self._update(batch)
+            loss = self._grad_step(batch)
+        self.target_updater.step()  # a Python counter: outside the compiled step
+        self.updates += 1
+        return loss
 
-    def _update(self, batch: TensorDictBase) -> float:
+    def _eager_grad_step(self, batch: TensorDictBase) -> torch.Tensor:
+        """The stage's loss, backward, gradient clipping and Adam: what ``compiled`` compiles."""
         loss = self.loss(batch)
-        self.optimizer.zero_grad(set_to_none=True)
+        for group in self.optimizer.param_groups:
+            for p in group["params"]:
+                p.grad = None  # Optimizer.zero_grad(set_to_none=True), which dynamo does not trace
         loss.backward()
         if self.cfg.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), self.cfg.grad_clip)
         self.optimizer.step()
-        self.target_updater.step()
-        self.updates += 1
-        return float(loss.detach())
+        return loss.detach()
 
     def sync_target(self) -> None:
         """Copy the online network into the target network now."""

@@ -134,6 +134,7 @@ class Trainer:
         self._acc: dict[str, list[float]] = {"loss": [], "demo": []}
         self._recent: deque[dict[str, Any]] = deque(maxlen=20)
         self._losses: deque[float] = deque(maxlen=100_000)
+        self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []  # (loss, demo count) not read back yet
         self._checkpointed_at = 0  # episodes at the last checkpoint
         self.resumed_from: int | None = None
         self._wall_before: float | None = 0.0  # training seconds of earlier calls (None: unknown)
@@ -188,11 +189,12 @@ class Trainer:
             return
         while not p.done:
             batch = self.stage.buffer.sample()
-            self._book([batch], [self.learner.update(batch)])
+            self._book([batch], [self.learner.step(batch)])
             p.updates += 1
             if after_update is not None:
                 after_update(p.updates)
             if checks.due():
+                self._read_back()
                 recent = list(self._losses)[-int(self._offline_settings.check_every):]
                 metrics = checks.check(self.learner.qnet, self.learner.loss_module, recent)
                 self._log_updates()  # every check gets its row
@@ -337,19 +339,33 @@ class Trainer:
             for batch in batches:
                 reprioritize(sampler, batch)
 
-    def _book(self, batches: list[TensorDictBase], losses: list[float]) -> None:
-        """Counters, accumulators and the periodic updates.csv rows of finished updates."""
+    def _book(self, batches: list[TensorDictBase], losses: list[torch.Tensor]) -> None:
+        """Counters, accumulators and the periodic updates.csv rows of finished updates. Their
+        losses and demo counts stay on the device until ``agent.loss_readback`` of them wait
+        (or a row, a check or a checkpoint needs them): one host read for all."""
         for batch, loss in zip(batches, losses, strict=True):
             self.counters.updates += 1
-            self._acc["loss"].append(loss)
-            self._acc["demo"].append(float(batch["is_demo"].sum()))
-            self._losses.append(loss)
+            self._pending.append((loss, batch["is_demo"].sum()))
             self._last_batch = batch
+            if len(self._pending) >= int(self.cfg.agent.loss_readback):
+                self._read_back()
             if self.counters.updates % int(self.cfg.log_every) == 0:
                 self._log_updates()
 
+    def _read_back(self) -> None:
+        """The pending losses and demo counts, read to the host at once, into the accumulators."""
+        if not self._pending:
+            return
+        losses = torch.stack([loss.float() for loss, _ in self._pending]).tolist()
+        demos = torch.stack([demo for _, demo in self._pending]).tolist()
+        self._pending = []
+        self._acc["loss"].extend(losses)
+        self._acc["demo"].extend(float(d) for d in demos)
+        self._losses.extend(losses)
+
     def _log_updates(self) -> None:
         """One row of updates.csv over the updates since the last row."""
+        self._read_back()
         c, demo, batch = self.counters, self._acc["demo"], self._last_batch
         if not demo:
             return
@@ -392,6 +408,7 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self) -> None:
+        self._read_back()  # the accumulators it saves hold every finished update
         online = not self.stage.offline
         state = {
             "config": ckpt.comparable(self.cfg),

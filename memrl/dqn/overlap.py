@@ -46,11 +46,13 @@ class RoundRunner:
         self.stale = False
         """The acting copy still holds the weights before the last round (see :meth:`flush`)."""
 
-    def run(self, batches: Sequence[TensorDictBase], collect: Callable[[], T]) -> tuple[list[float], T]:
-        """The updates of ``batches`` and ``collect()``: overlapped, or updates first."""
-        def learn() -> tuple[list[float], float]:
+    def run(self, batches: Sequence[TensorDictBase],
+            collect: Callable[[], T]) -> tuple[list[torch.Tensor], T]:
+        """The updates of ``batches`` and ``collect()``: overlapped, or updates first; their
+        losses as the learner left them (:meth:`Learner.step`: not read back)."""
+        def learn() -> tuple[list[torch.Tensor], float]:
             t0 = time.perf_counter()
-            return [self.learner.update(b) for b in batches], time.perf_counter() - t0
+            return [self.learner.step(b) for b in batches], time.perf_counter() - t0
 
         if not self.overlap or not batches:
             losses, seconds = learn()
@@ -66,12 +68,12 @@ class RoundRunner:
             self.sync()
         return losses, out
 
-    def flush(self, batches: Sequence[TensorDictBase]) -> list[float]:
+    def flush(self, batches: Sequence[TensorDictBase]) -> list[torch.Tensor]:
         """The rounds due at the end of a run, with the acting copy left as it was: the steps a
         longer run (or this one resumed with a larger budget) collects next would be collected
         during these updates, with the weights before them."""
         t0 = time.perf_counter()
-        losses = [self.learner.update(b) for b in batches]
+        losses = [self.learner.step(b) for b in batches]
         self.update_seconds += time.perf_counter() - t0
         self.stale = self.stale or (bool(batches) and self.acting_net is not self.learner.acting_actor)
         return losses
