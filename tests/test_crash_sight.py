@@ -79,6 +79,42 @@ def test_risk_of_the_action_taken_is_binned_when_the_network_outputs_one():
     assert rows["3-5"]["q_risk"] == pytest.approx(0.15) and rows["survivors"]["q_risk"] == pytest.approx(0.05)
 
 
+def test_risk_calibration_against_the_crashes_that_followed_by_hand():
+    eps = hand_episodes()
+    eps[0].risk = np.array([0.01, 0.03, 0.3, 0.9])  # per state
+    eps[1].risk = np.zeros((2, 9))
+    eps[1].risk[:, 0] = [0.15, 0.6]  # per action: the taken one (0) counts
+    eps[2].risk = np.array([0.0, 0.01, 0.04, 1.0, 0.9, 0.9])  # its last 2 steps are cut (6 - 6 // 3)
+    # gamma_risk 0.5: horizon round(1 / 0.5) = 2 steps; realized 0.5^k, k steps from the action to the crash
+    rows = {r["risk"]: r for r in cs.risk_calibration(eps, 0.5, duration=6)}
+    assert list(rows) == ["0-0.02", "0.02-0.05", "0.05-0.1", "0.1-0.2", "0.2-0.5", "0.5-1"]
+    # 0-0.02: episode 0 step 0 (k 3: 0.125, not within 2), survivor steps 0, 1 (0)
+    assert rows["0-0.02"]["n"] == 3 and rows["0-0.02"]["predicted"] == pytest.approx(0.02 / 3, abs=1e-4)
+    assert rows["0-0.02"]["realized"] == pytest.approx(0.125 / 3, abs=1e-4) and rows["0-0.02"]["within"] == 0
+    # 0.02-0.05: episode 0 step 1 (k 2: 0.25, not within) and the survivor's step 2 (0)
+    low = rows["0.02-0.05"]
+    assert (low["n"], low["realized"], low["within"]) == (2, 0.125, 0)
+    assert rows["0.05-0.1"] == {"risk": "0.05-0.1", "n": 0, "predicted": None, "realized": None,
+                                "within": None}
+    # 0.1-0.2: episode 1 step 0 (k 1: 0.5, within)
+    assert (rows["0.1-0.2"]["n"], rows["0.1-0.2"]["realized"], rows["0.1-0.2"]["within"]) == (1, 0.5, 1)
+    # 0.2-0.5: episode 0 step 2 (k 1: 0.5, within)
+    assert (rows["0.2-0.5"]["n"], rows["0.2-0.5"]["realized"], rows["0.2-0.5"]["within"]) == (1, 0.5, 1)
+    # 0.5-1 (1 included): episode 0 step 3 and episode 1 step 1 (k 0: 1, within), survivor step 3 (0)
+    assert (rows["0.5-1"]["n"], rows["0.5-1"]["within"]) == (3, pytest.approx(2 / 3, abs=1e-4))
+    assert rows["0.5-1"]["predicted"] == pytest.approx(2.5 / 3, abs=1e-4)
+    assert rows["0.5-1"]["realized"] == pytest.approx(2 / 3, abs=1e-4)
+    sight = cs.summarize(eps, GAMMA, 6, gamma_risk=0.5)
+    assert sight["gamma_risk"] == 0.5
+    assert sight["lanes"]["non_goal"]["risk_calibration"] == list(rows.values())
+    no_risk = cs.summarize(hand_episodes(), GAMMA, 6, gamma_risk=0.5)
+    assert "risk_calibration" not in no_risk["lanes"]["non_goal"]
+    # pooled over two units: counts summed, means weighted by steps
+    block = sight["lanes"]["non_goal"]
+    pooled = cs.pool([block, block])["risk_calibration"]
+    assert pooled[0]["n"] == 6 and pooled[0]["realized"] == rows["0-0.02"]["realized"]
+
+
 def test_td_error_by_hand():
     first, _, survivor = hand_episodes()
     # next max Q: 8, 6, 4 (the taken ones; the others are -1); at the crash the target is -5
@@ -189,6 +225,10 @@ def test_a_risk_output_is_recorded_and_reported():
 
     text = "\n".join(sight_lines([("B", [Result()])]))  # type: ignore[list-item]
     assert "**q_risk, by steps before a crash.**" in text
+    assert "**The crash-risk head's calibration.**" not in text  # no gamma_risk: no calibration
+    Result.crash_sight = cs.summarize(res.traces, 0.9, 20, gamma_risk=0.8)
+    text = "\n".join(sight_lines([("B", [Result()])]))  # type: ignore[list-item]
+    assert "**The crash-risk head's calibration.**" in text and "| risk 0.5-1 |" in text
 
 
 # --------------------------------------------------------------------------- end to end

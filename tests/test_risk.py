@@ -138,6 +138,7 @@ def test_a_risk_critic_run_trains_resumes_exactly_and_acts_safely_from_its_final
     net, _ = load_qnet(run)
     base = type(net.base)
     assert type(net) is RiskQNetwork and f"{base.__module__}.{base.__qualname__}" == cfg.network.base._target_
+    assert net.gamma_risk == float(cfg.network.gamma)  # the evaluation's risk calibration reads it
     x = fixed_input()
     with torch.no_grad():
         decided = net.decide(x).argmax(-1)

@@ -10,7 +10,9 @@ few numbers that ``eval.json`` keeps under ``crash_sight`` (:func:`summarize`):
   the time limit cuts it), over the steps 1, 2, 3-5, 6-10, 11-20 and 21-40 before a crash
   (1: the step whose action ended in the crash) and over the survivors' steps far from the
   time limit (:func:`survivor_steps`: steps 1-200 of 300); a network that declares a ``risk``
-  output (a crash-risk head) also gets its mean risk of the action taken per group;
+  output (a crash-risk head) also gets its mean risk of the action taken per group, and its
+  **risk calibration** (:func:`risk_calibration`: predicted risk, by bin, against the crashes
+  that followed);
 - **action gaps**: percentiles 10 / 50 / 90 over the test states of best - second Q, the speed
   gap (max - min over the three speed changes at the greedy curvature change) and the curvature
   gap (likewise), the greedy action's speed change (slower / keep / faster counts), beside the
@@ -37,6 +39,8 @@ BINS: tuple[tuple[int, int], ...] = ((1, 1), (2, 2), (3, 5), (6, 10), (11, 20), 
 TAIL = 100
 """Survivors' steps this close to the time limit are left out (their G misses at most gamma^TAIL
 of the tail); shorter episodes keep their first two thirds (:func:`survivor_steps`)."""
+RISK_EDGES = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+"""Bins of predicted risk for the risk calibration (the last bin includes 1)."""
 PERCENTILES = (10, 50, 90)
 SPEED = ("slower", "keep", "faster")
 """The speed change of action index ``3 * speed + curvature`` (:data:`memrl.envs.vehicles.ACTIONS`)."""
@@ -159,6 +163,37 @@ def calibration(traces: Sequence[EpisodeTrace], gamma: float, duration: int) -> 
     return rows
 
 
+def risk_calibration(traces: Sequence[EpisodeTrace], gamma_risk: float,
+                     duration: int) -> list[dict[str, Any]]:
+    """The crash-risk head against what followed, per bin of its predicted risk of the action
+    taken (:data:`RISK_EDGES`): ``n`` steps, ``predicted`` (their mean risk), ``realized`` (the
+    mean of what Q_risk estimates, gamma_risk^k for a crash k steps after the step's action, 0
+    for none) and ``within`` (the share of steps followed by a crash within the critic's horizon,
+    round(1 / (1 - gamma_risk)) steps). Every step of a crashed episode counts; a survivor's
+    first :func:`survivor_steps` (its later ones, cut by the time limit, would count a crash
+    after the limit as none)."""
+    horizon = round(1 / (1 - gamma_risk))
+    parts = []
+    for tr in traces:
+        if tr.risk is None:
+            continue
+        p = taken(tr.risk, tr.actions)
+        if tr.crashed:
+            ahead = len(p) - 1 - np.arange(len(p))  # steps after this step's action to the crash
+            parts.append(np.stack([p, gamma_risk ** ahead, ahead < horizon], axis=1))
+        else:
+            p = p[:survivor_steps(duration)]
+            parts.append(np.stack([p, np.zeros(len(p)), np.zeros(len(p))], axis=1))
+    arr = np.concatenate(parts) if parts else np.zeros((0, 3))
+    rows = []
+    for k, (lo, hi) in enumerate(zip(RISK_EDGES[:-1], RISK_EDGES[1:], strict=True)):
+        last = k == len(RISK_EDGES) - 2
+        sel = arr[(arr[:, 0] >= lo) & ((arr[:, 0] <= hi) if last else (arr[:, 0] < hi))]
+        rows.append({"risk": f"{lo:g}-{hi:g}", "n": len(sel), "predicted": _mean(sel[:, 0]),
+                     "realized": _mean(sel[:, 1]), "within": _mean(sel[:, 2])})
+    return rows
+
+
 def gaps(traces: Sequence[EpisodeTrace], gamma: float) -> dict[str, Any]:
     """The action gaps over every test state of ``traces`` (percentiles 10 / 50 / 90), the greedy
     speed changes (counts), and the TD error over their steps (``td_n`` steps, ``td`` mean)."""
@@ -175,16 +210,27 @@ def gaps(traces: Sequence[EpisodeTrace], gamma: float) -> dict[str, Any]:
     return out
 
 
-def summarize(traces: Iterable[EpisodeTrace], gamma: float, duration: int) -> dict[str, Any]:
+def summarize(traces: Iterable[EpisodeTrace], gamma: float, duration: int,
+              gamma_risk: float | None = None) -> dict[str, Any]:
     """``eval.json``'s ``crash_sight``: the settings, then per initial-lane setting its episodes,
-    crashes, :func:`calibration` and :func:`gaps`."""
+    crashes, :func:`calibration` and :func:`gaps`; with ``gamma_risk`` (a crash-risk head's
+    discount) and traces that carry a risk, also :func:`risk_calibration`."""
     by_lane: dict[str, list[EpisodeTrace]] = {}
     for tr in traces:
         by_lane.setdefault(tr.initial_lane, []).append(tr)
-    return {"gamma": gamma, "duration": duration, "survivor_steps": survivor_steps(duration),
-            "lanes": {lane: {"episodes": len(trs), "crashes": sum(t.crashed for t in trs),
-                             "calibration": calibration(trs, gamma, duration), "gaps": gaps(trs, gamma)}
-                      for lane, trs in by_lane.items()}}
+
+    def lane_block(trs: list[EpisodeTrace]) -> dict[str, Any]:
+        block = {"episodes": len(trs), "crashes": sum(t.crashed for t in trs),
+                 "calibration": calibration(trs, gamma, duration), "gaps": gaps(trs, gamma)}
+        if gamma_risk is not None and any(t.risk is not None for t in trs):
+            block["risk_calibration"] = risk_calibration(trs, gamma_risk, duration)
+        return block
+
+    out = {"gamma": gamma, "duration": duration, "survivor_steps": survivor_steps(duration),
+           "lanes": {lane: lane_block(trs) for lane, trs in by_lane.items()}}
+    if gamma_risk is not None:
+        out["gamma_risk"] = gamma_risk
+    return out
 
 
 def _weighted(items: Sequence[tuple[int, float | None]]) -> float | None:
@@ -215,6 +261,14 @@ def pool(blocks: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     gap["greedy_speed"] = {name: sum(s[name] for s in speeds) for name in SPEED} if speeds else None
     gap["td_n"] = sum(g["td_n"] for g in gs)
     gap["td"] = _weighted([(g["td_n"], g["td"]) for g in gs])
-    return {"units": len(blocks), "episodes": sum(b["episodes"] for b in blocks),
-            "crashes": sum(b["crashes"] for b in blocks),
-            "crashes_per_unit": [b["crashes"] for b in blocks], "calibration": cal, "gaps": gap}
+    out = {"units": len(blocks), "episodes": sum(b["episodes"] for b in blocks),
+           "crashes": sum(b["crashes"] for b in blocks),
+           "crashes_per_unit": [b["crashes"] for b in blocks], "calibration": cal, "gaps": gap}
+    risky = [b["risk_calibration"] for b in blocks if "risk_calibration" in b]
+    if risky:
+        out["risk_calibration"] = [
+            {"risk": rows[0]["risk"], "n": sum(r["n"] for r in rows),
+             **{key: _weighted([(r["n"], r[key]) for r in rows])
+                for key in ("predicted", "realized", "within")}}
+            for rows in zip(*risky, strict=True)]
+    return out

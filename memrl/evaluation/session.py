@@ -88,7 +88,8 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
     if not records:
         raise RuntimeError(f"evaluate {cand.name}: no episode finished")
     stopped = res.stopped_early or len(records) < total
-    sight = summarize(res.traces, float(gamma), protocol.duration) \
+    gamma_risk = getattr(getattr(cand.actor, "net", None), "gamma_risk", None)  # a crash-risk head's
+    sight = summarize(res.traces, float(gamma), protocol.duration, gamma_risk) \
         if gamma is not None and record and res.traces else None
     result = write_result(Path(where), cand.name, records, protocol, seeds, cand.meta,
                           stopped_early=stopped, wall_s=wall, env=jobs[0].env,

@@ -119,6 +119,7 @@ def sight_lines(rows: Sequence[tuple[str, Sequence[EvalResult]]]) -> list[str]:
         for label, lane, block, gamma in pooled:
             lines.append(f"| {label_of(label, gamma)} | {LANE_NAMES.get(lane, lane)} | "
                          + " | ".join(_cell(row, "q_risk") for row in block["calibration"]) + " |")
+    lines += _risk_lines(pooled, label_of)
     lines += [
         "", "**The action gap beside the fit's error.** Percentiles 10 / 50 / 90 over every test state: "
         "best \u2212 second (the greedy action's Q minus the next best of the 9), speed gap (max \u2212 min "
@@ -143,6 +144,32 @@ def sight_lines(rows: Sequence[tuple[str, Sequence[EvalResult]]]) -> list[str]:
         lines += ["", f"Not recorded: {', '.join(missing)} (evaluated before Q-values were recorded; "
                   "evaluate again with `overwrite=true`)."]
     return [*lines, ""]
+
+
+def _risk_cell(row: dict[str, Any]) -> str:
+    if not row["n"]:
+        return DASH
+    return (f"{_num(row['predicted'], 3)} / {_num(row['realized'], 3)} / {_num(row['within'], 2)} "
+            f"({row['n']:,})")
+
+
+def _risk_lines(pooled: Sequence[tuple[str, str, dict[str, Any], float]], label_of: Any) -> list[str]:
+    """The risk calibration table of the rows whose network has a crash-risk head."""
+    risky = [p for p in pooled if "risk_calibration" in p[2]]
+    if not risky:
+        return []
+    bins = [row["risk"] for row in risky[0][2]["risk_calibration"]]
+    return ["", "**The crash-risk head's calibration.** Test steps grouped by the predicted risk of the "
+            "action taken; per group: mean predicted risk / mean realized gamma_risk^k (k: steps from "
+            "the step's action to the crash that followed; 0 for none: what the critic estimates) / the "
+            "share of steps with a crash within the critic's horizon 1 / (1 \u2212 gamma_risk) (steps). "
+            "Every step of a crashed episode; the survivors' steps far from the time limit, as above. "
+            "A calibrated critic has predicted = realized in every group.", "",
+            "| row | starts | " + " | ".join(f"risk {b}" for b in bins) + " |",
+            "|---|---|" + "---|" * len(bins),
+            *(f"| {label_of(label, gamma)} | {LANE_NAMES.get(lane, lane)} | "
+              + " | ".join(_risk_cell(row) for row in block["risk_calibration"]) + " |"
+              for label, lane, block, gamma in risky)]
 
 
 def sight_section(groups: Sequence[Sequence[EvalResult]], cfg: stats.StatsConfig) -> list[str]:

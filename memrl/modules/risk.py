@@ -82,6 +82,8 @@ class RiskQNetwork(nn.Module):
         self.critic = QNetwork(frames, size, n_actions, channels=channels, hidden=hidden,
                                layernorm=layernorm, layernorm_convs=layernorm_convs, pool_first=pool_first)
         self.frames, self.threshold = int(frames), float(threshold)
+        self.gamma_risk = float(gamma)
+        """The critic's discount (its TD term's; the evaluation's risk calibration reads it)."""
         with torch.no_grad():  # the output layer's bias at logit(prior): see RiskConfig.prior
             out = [m for m in self.critic.modules() if isinstance(m, nn.Linear)][-1]
             out.bias.fill_(float(torch.logit(torch.tensor(float(prior), dtype=torch.float64))))
