@@ -39,10 +39,10 @@ def batches_of(cfg, demos, stages, seed: int = 0):
     return out
 
 
-def make_learner(cfg, mode: str) -> Learner:
+def make_learner(cfg, mode: str, device: str = "cpu") -> Learner:
     cfg.agent.update_mode = mode
     torch.manual_seed(1)  # both learners start from the same weights
-    return Learner(cfg.agent, network=network_for_task(cfg.network, cfg.env, float(cfg.agent.gamma)))
+    return Learner(cfg.agent, device, network=network_for_task(cfg.network, cfg.env, float(cfg.agent.gamma)))
 
 
 def copy_state(dst: Learner, src: Learner) -> None:
@@ -65,18 +65,19 @@ def copy_state(dst: Learner, src: Learner) -> None:
 RTOL = 2 * 1600 * 2.0 ** -24
 
 
-def lockstep(cfg, staged) -> Learner:
+def lockstep(cfg, staged, mode: str = "compiled", device: str = "cpu") -> Learner:
     """Eager and compiled learners stepped side by side over the staged batches, the compiled one
     set to the eager one's state before each update (differences cannot compound): every
     update's loss and clipped gradient agree within :data:`RTOL`, and the weights after it
     within Adam's bound (each moves by at most lr per step)."""
-    eager, compiled = make_learner(cfg, "eager"), make_learner(cfg, "compiled")
+    eager, compiled = make_learner(cfg, "eager", device), make_learner(cfg, mode, device)
     for i, (stage, batches) in enumerate(staged):
         fresh = i > 0 and stage.spec.fresh_optimizer
         for learner in (eager, compiled):
             learner.start_stage(stage.terms, stage.lr, fresh_optimizer=fresh)
         for k, batch in enumerate(batches):
             copy_state(compiled, eager)
+            batch = batch.to(device)
             loss_e, loss_c = eager.step(batch.clone()), compiled.step(batch.clone())
             where = f"{stage.name} update {k}"
             assert abs(float(loss_c) - float(loss_e)) <= RTOL * abs(float(loss_e)) + 1e-12, where
@@ -89,7 +90,7 @@ def lockstep(cfg, staged) -> Learner:
             for (name, x), y in zip(eager.qnet.state_dict().items(), compiled.qnet.state_dict().values(),
                                     strict=True):
                 assert float((x - y).abs().max()) <= 2 * lr, (where, name)
-    assert compiled.update_mode == "compiled" and compiled.updates == eager.updates
+    assert compiled.update_mode == mode and compiled.updates == eager.updates
     return compiled
 
 
@@ -114,6 +115,21 @@ def test_the_compiled_update_equals_the_eager_one(compose_cfg, demos, one_thread
     with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):  # no quiet fall back to eager
         lockstep(cfg, staged)
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] > 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("case", ["default", "B"])
+def test_the_captured_update_equals_the_eager_one_on_cuda(compose_cfg, demos, case, monkeypatch):
+    """On a GPU: the CUDA-graph step against the eager one, as on the CPU (full float32: no TF32)."""
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
+    overrides, stages = CASES[case]
+    cfg = compose_cfg("train", ["+experiment=smoke", "agent.batch_size=32", "agent.precision=float32",
+                                "buffer.capacity=1000", "device=cuda", *overrides])
+    staged = batches_of(cfg, demos, stages)
+    torch._dynamo.reset()
+    with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):
+        lockstep(cfg, staged, "captured", "cuda")
 
 
 def test_captured_needs_a_cuda_device(compose_cfg):

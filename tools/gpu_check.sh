@@ -20,8 +20,9 @@ timeout "${T_CUDA:-300}" python3 -m pytest -q -p no:cacheprovider -rs -k cuda te
 want batched && { step bench batched on cuda
 timeout "${T_BATCHED:-90}" python3 -m memrl.bench batched batched.device=cuda batched.seconds=2 batched.path_time=0 batched.reference_steps=500 \
   batched.threads=4 hydra.run.dir="$OUT/batched"; }
-want e2e && { step bench e2e on cuda
-timeout "${T_E2E:-150}" python3 -m memrl.bench e2e e2e.device=cuda "e2e.gpu_num_envs=[16,256]" \
+want e2e && { step bench e2e on cuda, eager and captured update
+# (e2e.gpu_update_modes: the eager step and the CUDA-graph one, agent.update_mode=captured)
+timeout "${T_E2E:-240}" python3 -m memrl.bench e2e e2e.device=cuda "e2e.gpu_num_envs=[16,256]" \
   "e2e.gpu_batch_sizes=[32,256]" e2e.gpu_total_frames="${E2E_FRAMES:-6000}" e2e.learner_seconds=3 \
   "e2e.num_envs=[16]" "e2e.overlap=[true]" hydra.run.dir="$OUT/e2e"; }
 rm -rf "$OUT/batched/.hydra" "$OUT/e2e/.hydra"

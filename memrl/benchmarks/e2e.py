@@ -38,6 +38,10 @@ def compose_train(overrides: list[str]) -> DictConfig:
         return compose("train", overrides=overrides)
 
 
+GPU_READBACK = 50
+"""``agent.loss_readback`` of the CUDA runs: losses read to the host 50 at a time."""
+
+
 class TimedTrainer(Trainer):
     """A Trainer recording the (start, end) of every learner update (gradient step; with
     ``agent.overlap`` it runs in the learner thread, in either mode on the learner alone)."""
@@ -78,7 +82,8 @@ def run(total_frames: int = 1000, learner_seconds: float = 5.0, seed: int = 0,
     if dev.type == "cuda":
         runs += [run_one(gpu_total_frames, learner_seconds, seed,
                          [*base, f"device={dev}", f"env.num_envs={n}", f"agent.batch_size={b}",
-                          "agent.overlap=false", "buffer.capacity=100000", f"agent.update_mode={m}"])
+                          "agent.overlap=false", "buffer.capacity=100000", f"agent.update_mode={m}",
+                          f"agent.loss_readback={GPU_READBACK}"])
                  for m in gpu_update_modes for n in gpu_num_envs for b in gpu_batch_sizes]
     return {"device": str(dev), "threads": torch.get_num_threads(),
             "cpu": platform.processor() or platform.machine(),

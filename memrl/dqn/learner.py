@@ -184,7 +184,11 @@ class Learner:
         """One gradient step and a target-update tick; returns the loss, detached, where it was
         computed (no host synchronisation: the trainer reads losses every ``loss_readback``)."""
         try:
-            loss = self._grad_step(batch)
+            if self.update_mode == "captured":
+                torch.compiler.cudagraph_mark_step_begin()  # one training step per replay
+                loss = self._grad_step(batch).clone()  # a graph's output is overwritten at its next replay
+            else:
+                loss = self._grad_step(batch)
         except Exception as err:
             if not self.compiled and self.update_mode == "eager":
                 raise
