@@ -72,6 +72,12 @@ def _pool(cfg: DictConfig) -> dict[str, Any]:
     return pool_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
 
 
+def _seeds(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import seeds_speed
+
+    return seeds_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
 def _eval(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import eval_speed
 
@@ -83,7 +89,8 @@ BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "s
                                                                  "learner": _learner,
                                                                  "memory": _memory,
                                                                  "e2e": _e2e, "batched": _batched,
-                                                                 "eval": _eval, "pool": _pool}
+                                                                 "eval": _eval, "pool": _pool,
+                                                                 "seeds": _seeds}
 
 
 def machine() -> dict[str, Any]:

@@ -21,7 +21,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from memrl.data.recipe import DemoRecipe
-from memrl.dqn.config import UPDATE_MODES
+from memrl.dqn.config import PRECISIONS, UPDATE_MODES
 from memrl.errors import UserError, config_error, load_run_config
 from memrl.fields import SEED_MAX, _element_ok, _valid, check_fields, spec  # noqa: F401
 from memrl.known_keys import check_known_keys
@@ -451,7 +451,8 @@ def check_deploy(cfg: DictConfig) -> None:
 # ---------------------------------------------------------------------------------------------
 # bench
 
-BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1", "eval", "pool")
+BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1", "eval", "pool",
+                   "seeds")
 
 
 @dataclass
@@ -505,6 +506,21 @@ class E2EBench:
     learner_seconds: float = spec(gt=0)
     seed: int = spec(ge=0, le=SEED_MAX)
     overrides: list[str] = MISSING
+
+
+@dataclass
+class SeedsBench:
+    seeds: list[int] = spec(ge=1, nonempty=True)
+    batch_size: int = spec(ge=1)
+    seconds: float = spec(gt=0)
+    rounds: int = spec(ge=1)
+    precision: str = spec(choices=PRECISIONS)
+    threads: int = spec(ge=0)
+    device: str = MISSING
+    lr: float = spec(gt=0)
+    gamma: float = spec(gt=0, lt=1)
+    grad_clip: float = spec(ge=0)
+    seed: int = spec(ge=0, le=SEED_MAX)
 
 
 @dataclass
@@ -574,6 +590,7 @@ class BenchSchema:
     stage1: Stage1Bench = field(default_factory=Stage1Bench)
     eval: EvalBench = field(default_factory=EvalBench)
     pool: PoolBench = field(default_factory=PoolBench)
+    seeds: SeedsBench = field(default_factory=SeedsBench)
     debug: bool = MISSING
     paths: Any = MISSING
 

@@ -19,6 +19,7 @@ from tests.test_learner import batch
 def test_bench_learner_times_memrl_beside_the_bare_loop(compose_cfg, tmp_path, monkeypatch):
     # the compile variant of the ablation stays eager here (compiling takes tens of seconds)
     monkeypatch.setattr("memrl.dqn.learner.compile_qnet", lambda qnet, sizes, device="cpu": False)
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)  # and so does the compiled update
     cfg = compose_cfg("bench", ["benchmarks=[learner]", "learner.batch_sizes=[4]",
                                 "learner.seconds=0.01", "learner.rounds=1",
                                 "learner.warmup_updates=1", "learner.buffer_transitions=40"])
@@ -26,8 +27,11 @@ def test_bench_learner_times_memrl_beside_the_bare_loop(compose_cfg, tmp_path, m
     b4 = res["batch_4"]
     for name in ("bare_naive", "bare_tuned", "memrl_naive", "memrl_tuned",
                  "memrl_threads_2", "memrl_channels_last_false", "memrl_compile_true",
-                 "memrl_precision_float32", "memrl_advantage_learning", "memrl_dueling"):
+                 "memrl_precision_float32", "memrl_advantage_learning", "memrl_dueling",
+                 "memrl_update_mode_compiled"):
         assert b4[name]["updates_per_s"] > 0 and len(b4[name]["rounds"]) == 1, name
+    assert b4["memrl_update_mode_compiled"]["update_mode"] == "compiled"
+    assert b4["memrl_tuned"]["update_mode"] == "eager"
     assert b4["bare_naive"]["threads"] == learner_speed.DEFAULT_THREADS
     assert b4["memrl_tuned"]["channels_last"] is True
     assert res["default_options"] == {"threads": 1, "channels_last": True, "compile": False,
@@ -258,3 +262,35 @@ def test_auto_precision_follows_the_cpu(monkeypatch):
     assert learner_mod.conv_dtype("float32") is None
     with pytest.raises(ValueError, match="agent.precision"):
         learner_mod.conv_dtype("float16")
+
+
+def test_the_stacked_seeds_update_is_the_separate_updates():
+    """K = 3 Table I networks stacked (vmap): each update's losses are the 3 separate updates'
+    (float32: the sums' rounding, tests/test_update_modes.py's bound), and after 3 updates the
+    weights within Adam's bound (each step moves a weight by at most lr)."""
+    from memrl.benchmarks import seeds_speed
+    from memrl.modules.qnet import QNetwork
+    from tests.test_update_modes import RTOL
+
+    torch.manual_seed(0)
+    nets = [QNetwork() for _ in range(3)]
+    data = seeds_speed._batches(3, 4, 0, torch.device("cpu"))
+    sep_nets = copy.deepcopy(nets)
+    sep = seeds_speed.separate(sep_nets, data, 2.5e-4, 0.95, 10.0)
+    stk = seeds_speed.stacked(nets, data, 2.5e-4, 0.95, 10.0)
+    for _ in range(3):
+        a, b = sep(), stk()
+        assert a.shape == (3,) and ((a - b).abs() <= RTOL * a.abs() + 1e-12).all()
+    for k, net in enumerate(sep_nets):
+        for name, w in net.state_dict().items():
+            assert float((stk.params[name][k] - w).abs().max()) <= 3 * 2 * 2.5e-4, (k, name)
+
+
+def test_bench_seeds_reports_both_updates_per_k(compose_cfg, tmp_path):
+    cfg = compose_cfg("bench", ["benchmarks=[seeds]", "seeds.seeds=[1,2]", "seeds.batch_size=2",
+                                "seeds.seconds=0.01", "seeds.rounds=1", "seeds.precision=float32"])
+    res = bench(cfg, tmp_path)["seeds"]
+    for k in (1, 2):
+        row = res[f"k_{k}"]
+        assert row["separate_updates_per_s"] > 0 and row["stacked_updates_per_s"] > 0
+        assert row["first_loss_gap"] <= 1e-4 and len(row["separate"]) == 1

@@ -2,13 +2,13 @@
 # One GPU-machine check (run by the device tool from the repo root, .wheels carried; see
 # docs/performance.md): install the wheels the image lacks, the CUDA tests, the batched-engine
 # and end-to-end benchmarks on CUDA, then the engine's own tests on a CUDA-default machine.
-# Everything it prints goes to $OUT/log.txt; benchmark JSON to $OUT/{batched,e2e}/bench.json.
+# Everything it prints goes to $OUT/log.txt; benchmark JSON to $OUT/{batched,e2e,seeds}/bench.json.
 set -u
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
 export PYTHONUNBUFFERED=1 SDL_VIDEODRIVER=dummy PYTHONDONTWRITEBYTECODE=1
 step() { echo "=== $(date +%T) $*"; }
-want() { [[ " ${STEPS:-cuda batched e2e suite} " == *" $1 "* ]]; }  # STEPS="cuda e2e": a subset
+want() { [[ " ${STEPS:-cuda batched e2e seeds suite} " == *" $1 "* ]]; }  # STEPS="cuda e2e": a subset
 step install
 python3 -m pip install -q --no-index --no-deps .wheels/*.whl || exit 1
 python3 -m pip install -q --no-deps --no-build-isolation --ignore-requires-python -e . || exit 1
@@ -25,7 +25,10 @@ want e2e && { step bench e2e on cuda, eager and captured update
 timeout "${T_E2E:-240}" python3 -m memrl.bench e2e e2e.device=cuda "e2e.gpu_num_envs=[16,256]" \
   "e2e.gpu_batch_sizes=[32,256]" e2e.gpu_total_frames="${E2E_FRAMES:-6000}" e2e.learner_seconds=3 \
   "e2e.num_envs=[16]" "e2e.overlap=[true]" hydra.run.dir="$OUT/e2e"; }
-rm -rf "$OUT/batched/.hydra" "$OUT/e2e/.hydra"
+want seeds && { step bench seeds on cuda: K separate updates vs K networks stacked with vmap
+timeout "${T_SEEDS:-90}" python3 -m memrl.bench seeds seeds.device=cuda "seeds.seeds=[1,5,16]" seeds.seconds=2 \
+  hydra.run.dir="$OUT/seeds"; }
+rm -rf "$OUT/batched/.hydra" "$OUT/e2e/.hydra" "$OUT/seeds/.hydra"
 want suite && { step engine tests, device auto = cuda
 timeout "${T_SUITE:-80}" python3 -m pytest -q -p no:cacheprovider -n 8 tests/test_batched.py \
   tests/test_batched_state.py tests/test_engine_runner.py tests/test_frame_store.py tests/test_train_batched.py; }
