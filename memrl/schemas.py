@@ -61,6 +61,10 @@ class TrainSchema:
     """Name of the command's output folder (``outputs/<task_name>/...``)."""
     seed: int = spec(ge=0, le=SEED_MAX)
     """Seed of the run: weights, exploration, episode scenes."""
+    seeds: list[int] | None = spec(ge=0, le=SEED_MAX, nonempty=True)
+    """Several seeds of this configuration trained in one process, in turn
+    (:func:`memrl.train.train_seeds`): run folders ``<output dir>/s<seed>``, each what that seed's
+    own run writes (``seed`` is then not used); null: one run at ``seed``."""
     device: str = MISSING
     """Where the network, loss, optimizer, replay storage and batched envs live: ``auto``
     (CUDA when present), ``cpu``, ``cuda`` or ``cuda:K``."""

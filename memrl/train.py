@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -17,7 +19,7 @@ from memrl.stop import Interrupted, deferred, interruption
 if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
     from tensordict import TensorDictBase
 
-    from memrl.dqn.loop import Summary
+    from memrl.dqn.loop import Summary, Trainer
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +94,81 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
         out_dir: run folder (default: Hydra's ``paths.output_dir``); ignored when resuming.
         demos: prior-knowledge transitions to use instead of loading ``mode.demos_path``.
     """
-    from memrl.dqn.loop import Trainer
+    with opened_run(cfg, out_dir, demos) as opened:
+        if not isinstance(opened, tuple):
+            return opened  # finished earlier at this budget
+        trainer, run_dir = opened
+        with deferred():  # a signal stops at the loop's next checkpoint
+            try:
+                summary = trainer.run()
+            except Exception as err:  # a second signal, raised at once, masked on its way up
+                if (stop := interruption(err)) is not None:
+                    raise Interrupted(stop.signum) from err
+                raise
+    _done(summary, run_dir)
+    return summary
+
+
+def train_seeds(cfg: DictConfig, seeds: Sequence[int], out_dir: Path | None = None,
+                demos: TensorDictBase | None = None) -> list[Summary]:
+    """Train ``cfg`` at each of ``seeds`` in this process, their turns in order
+    (:mod:`memrl.dqn.seed_group`): run folders ``<out_dir>/s<seed>``, each what that seed's own
+    run writes. With ``cfg.resume`` set (the group's folder), every run continues from its own
+    checkpoint. Every seed's config is checked before any folder is made."""
+    from contextlib import ExitStack
+
+    from memrl.dqn.seed_group import Member, RngState, run_turns
+
+    if not seeds or len(set(seeds)) != len(seeds):
+        from memrl.errors import config_error
+
+        raise config_error("seeds", f"need distinct seeds, got {list(seeds)}")
+    group = Path(cfg.resume) if cfg.resume else Path(out_dir or cfg.paths.output_dir)
+    cfgs = []
+    for seed in seeds:
+        c = cfg.copy()
+        c.seed, c.seeds = int(seed), None  # each run's config is its single-seed run's
+        if cfg.resume:
+            c.resume = str(group / f"s{seed}")
+        check_train(c)
+        cfgs.append(c)
+    outer = RngState.now()
+    members, dirs = [], []
+    with ExitStack() as stack:
+        for c in cfgs:
+            opened = stack.enter_context(opened_run(c, group / f"s{c.seed}", demos))
+            if isinstance(opened, tuple):
+                members.append(Member(opened[0]))  # the generators as its Trainer left them
+                dirs.append(opened[1])
+            else:
+                members.append(Member(None, summary=opened))
+                dirs.append(Path(opened.run_dir))
+            outer.restore()  # the next run starts from the same outer state, as its own process
+        with deferred():
+            try:
+                summaries = run_turns(members)
+            except Exception as err:
+                if (stop := interruption(err)) is not None:
+                    raise Interrupted(stop.signum) from err
+                raise
+    for summary, run_dir in zip(summaries, dirs, strict=True):
+        _done(summary, run_dir)
+    return summaries
+
+
+def _done(summary: Summary, run_dir: Path) -> None:
+    log.info("done: %d episodes, %d frames, %d updates in %.0f s; summary in %s",
+             summary.episodes, summary.frames, summary.updates, summary.wall_s,
+             run_dir / "summary.json")
+
+
+@contextmanager
+def opened_run(cfg: DictConfig, out_dir: Path | None = None,
+               demos: TensorDictBase | None = None) -> Iterator[tuple[Trainer, Path] | Summary]:
+    """A run made ready to train: its folder claimed and locked, its logger open, its trainer
+    built (and resumed) and its provenance recorded; or its stored summary where it finished
+    earlier at this budget. The lock and the logger are held for the block."""
+    from memrl.dqn.loop import Trainer  # noqa: F811  (the runtime import; the one above is for types)
     from memrl.loggers import check_backend, open_logger
     from memrl.provenance import auto_precision_change, read_provenance, record_provenance
     from memrl.run_folder import check_start_folder, claim_start_folder
@@ -116,7 +192,8 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
         if stored is not None:
             log.info("%s finished earlier at this budget (%d frames, %d episodes): nothing to "
                      "train, summary.json kept", run_dir, stored.frames, stored.episodes)
-            return stored
+            yield stored
+            return
         saved = cfg.copy()
         saved.paths.output_dir = str(run_dir)  # resolvable outside a Hydra run too
         resolved = OmegaConf.to_container(saved, resolve=True)
@@ -136,22 +213,19 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
             if cfg.resume and str(cfg.agent.precision) == "auto" and (
                     change := auto_precision_change(read_provenance(run_dir))):
                 log.warning(change)
-            with deferred():  # a signal stops at the loop's next checkpoint
-                try:
-                    summary = trainer.run()
-                except Exception as err:  # a second signal, raised at once, masked on its way up
-                    if (stop := interruption(err)) is not None:
-                        raise Interrupted(stop.signum) from err
-                    raise
-    log.info("done: %d episodes, %d frames, %d updates in %.0f s; summary in %s",
-             summary.episodes, summary.frames, summary.updates, summary.wall_s,
-             run_dir / "summary.json")
-    return summary
+            yield trainer, run_dir
+
+
+def train_any(cfg: DictConfig) -> Summary | list[Summary]:
+    """One run, or with ``seeds`` set, those seeds in this process (:func:`train_seeds`)."""
+    if cfg.get("seeds"):
+        return train_seeds(cfg, [int(s) for s in cfg.seeds])
+    return train(cfg)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> None:
-    run_task(train, cfg)
+    run_task(train_any, cfg)
 
 
 if __name__ == "__main__":

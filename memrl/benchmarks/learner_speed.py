@@ -118,19 +118,27 @@ def bare_step(agent: DictConfig, batch: dict[str, torch.Tensor], seed: int) -> C
     r, not_term = batch["reward"], (~batch["terminated"]).float()
 
     def step() -> float:
-        q = net(obs).gather(1, a).squeeze(1)
-        with torch.no_grad():
-            a_star = net(nxt).argmax(1, keepdim=True)
-            y = r + gamma * not_term * target(nxt).gather(1, a_star).squeeze(1)
-        loss = 0.5 * (q - y).pow(2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if clip > 0:
-            torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
-        opt.step()
-        return float(loss.detach())
+        return float(bare_update(net, target, opt, (obs, nxt, a, r, not_term), gamma, clip))
 
     return step
+
+
+def bare_update(net: torch.nn.Module, target: torch.nn.Module, opt: torch.optim.Optimizer,
+                batch: tuple[torch.Tensor, ...], gamma: float, clip: float) -> torch.Tensor:
+    """One plain double-DQN update of ``net`` on ``batch`` = (obs, next obs, actions ``[B, 1]``,
+    rewards, not-terminated as float); returns the loss, detached."""
+    obs, nxt, a, r, not_term = batch
+    q = net(obs).gather(1, a).squeeze(1)
+    with torch.no_grad():
+        a_star = net(nxt).argmax(1, keepdim=True)
+        y = r + gamma * not_term * target(nxt).gather(1, a_star).squeeze(1)
+    loss = 0.5 * (q - y).pow(2).mean()
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    if clip > 0:
+        torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+    opt.step()
+    return loss.detach()
 
 
 def memrl_step(agent: DictConfig, buffer: Any, seed: int, network: dict[str, Any] | None = None,

@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from memrl.benchmarks.learner_speed import bare_update
 from memrl.dqn.learner import conv_dtype
 from memrl.envs.batched import resolve_device
 from memrl.modules.qnet import QNetwork
@@ -41,18 +42,8 @@ def separate(nets: list[QNetwork], data: dict[str, torch.Tensor], lr: float, gam
     def step() -> torch.Tensor:
         losses = []
         for k, (net, target, opt) in enumerate(zip(nets, targets, opts, strict=True)):
-            q = net(data["obs"][k]).gather(1, data["action"][k]).squeeze(1)
-            with torch.no_grad():
-                best = net(data["next"][k]).argmax(1, keepdim=True)
-                later = target(data["next"][k]).gather(1, best).squeeze(1)
-                y = data["reward"][k] + gamma * data["alive"][k] * later
-            loss = 0.5 * (q - y).pow(2).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if clip > 0:
-                torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
-            opt.step()
-            losses.append(loss.detach())
+            batch = tuple(data[key][k] for key in ("obs", "next", "action", "reward", "alive"))
+            losses.append(bare_update(net, target, opt, batch, gamma, clip))
         return torch.stack(losses)
 
     return step

@@ -1,12 +1,14 @@
 """The training loop of all three modes: N envs, any device, exact resume.
 
-:meth:`Trainer.run` is the whole algorithm: sample the update rounds that are due, run them
-(in a learner thread while the next env steps are collected, with ``agent.overlap``), store the
-new transitions, book finished episodes, checkpoint. The pieces it calls each live in their own
-module: the stages' buffers, exploration and losses (:mod:`memrl.dqn.builder`), collection
-(:mod:`memrl.dqn.collector`), the replay ratio and budgets (:mod:`memrl.dqn.schedule`),
-overlapped rounds (:mod:`memrl.dqn.overlap`), an offline stage's stop rule (:mod:`memrl.dqn.stage1`),
-the self-play pool (:mod:`memrl.dqn.self_play`), run records (:mod:`memrl.dqn.records`).
+:meth:`Trainer.run` is the whole algorithm, one :meth:`Trainer.iterate` after another: sample
+the update rounds that are due, run them (in a learner thread while the next env steps are
+collected, with ``agent.overlap``), store the new transitions, book finished episodes,
+checkpoint (:mod:`memrl.dqn.seed_group` takes the turns of several runs in one process). The
+pieces it calls each live in their own module: the stages' buffers, exploration and losses
+(:mod:`memrl.dqn.builder`), collection (:mod:`memrl.dqn.collector`), the replay ratio and
+budgets (:mod:`memrl.dqn.schedule`), overlapped rounds (:mod:`memrl.dqn.overlap`), an offline
+stage's stop rule (:mod:`memrl.dqn.stage1`), the self-play pool (:mod:`memrl.dqn.self_play`),
+run records (:mod:`memrl.dqn.records`).
 """
 
 from __future__ import annotations
@@ -138,40 +140,71 @@ class Trainer:
         self._checkpointed_at = 0  # episodes at the last checkpoint
         self.resumed_from: int | None = None
         self._wall_before: float | None = 0.0  # training seconds of earlier calls (None: unknown)
+        self._bar: tqdm | None = None  # begin() opens it
         self._start_clock()  # run() starts it again; stage 1 alone (bench, tests) counts from here
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> Summary:
-        c = self.counters
-        self._start_clock()
-        bar = self._progress_bar()
         try:
-            if self.stage.offline:
-                self.run_offline()
-            while not self._budget_done():
-                batches = self._due_batches()  # sampled now, before the new steps join
-                losses, steps = self.rounds.run(batches, self._collect)  # overlapped or in turn
-                self._book(batches, losses)
-                self._reprioritize(batches)  # prioritized replay: the new TD errors
-                for part in steps.transitions:
-                    self.stage.buffer.extend(part)
-                self._episodes_done(steps.episodes)
-                self.periodic.after_steps(self.learner.qnet, c.episodes, c.frames)
-                if self.teacher is not None and self.teacher.after_steps(self.learner.qnet, c.frames):
-                    self._teach()
-                bar.update(len(steps.episodes) if self.budget.total_episodes is not None
-                           else steps.frames)
-                if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
-                    self.save_checkpoint()
-                if stop_requested() and (self.num_envs > 1 or self.collector.between_episodes()):
-                    self.save_checkpoint()  # SIGINT / SIGTERM: a resumable stop (memrl.stop)
-                    raise_pending()
-            batches = self._due_batches()  # the rounds the last steps made due
-            self._book(batches, self.rounds.flush(batches))
-            self._reprioritize(batches)
+            self.begin()
+            while not self.done():
+                self.iterate()
+            self.end_rounds()
         finally:
-            self.rounds.close()
-            bar.close()
+            self.close()
+        return self.finish()
+
+    def begin(self) -> None:
+        """The clock, the progress bar and the offline stage (where the mode has one)."""
+        self._start_clock()
+        self._bar = self._progress_bar()
+        if self.stage.offline:
+            self.run_offline()
+
+    def done(self) -> bool:
+        """The budget is spent (N = 1: and the episode is over)."""
+        return self._budget_done()
+
+    def iterate(self) -> None:
+        """One turn of the loop: the update rounds due, the env steps until the next is due."""
+        c = self.counters
+        batches = self._due_batches()  # sampled now, before the new steps join
+        losses, steps = self.rounds.run(batches, self._collect)  # overlapped or in turn
+        self._book(batches, losses)
+        self._reprioritize(batches)  # prioritized replay: the new TD errors
+        for part in steps.transitions:
+            self.stage.buffer.extend(part)
+        self._episodes_done(steps.episodes)
+        self.periodic.after_steps(self.learner.qnet, c.episodes, c.frames)
+        if self.teacher is not None and self.teacher.after_steps(self.learner.qnet, c.frames):
+            self._teach()
+        assert self._bar is not None, "begin() first"
+        self._bar.update(len(steps.episodes) if self.budget.total_episodes is not None else steps.frames)
+        if c.episodes // self._ckpt_every > self._checkpointed_at // self._ckpt_every:
+            self.save_checkpoint()
+        if stop_requested() and self.can_stop():
+            self.save_checkpoint()  # SIGINT / SIGTERM: a resumable stop (memrl.stop)
+            raise_pending()
+
+    def can_stop(self) -> bool:
+        """A checkpoint now resumes exactly (N = 1: only between episodes)."""
+        return self.num_envs > 1 or self.collector.between_episodes()
+
+    def end_rounds(self) -> None:
+        """The update rounds the last steps made due."""
+        batches = self._due_batches()
+        self._book(batches, self.rounds.flush(batches))
+        self._reprioritize(batches)
+
+    def close(self) -> None:
+        """The learner thread and the progress bar (also after a failed or stopped turn)."""
+        self.rounds.close()
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def finish(self) -> Summary:
+        """The final checkpoint and the summary."""
         self.save_checkpoint()
         return self._summary()
 

@@ -1,0 +1,139 @@
+"""K seeds of one configuration in one process (:func:`memrl.train.train_seeds`) write what their
+own single-seed runs write, and a killed group resumes to the same runs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from memrl.dqn.loop import Trainer
+from memrl.train import train, train_seeds
+from tests.helpers import TINY, Killed, csv_rows, tiny_mode
+
+SEEDS = (0, 1, 2)
+WALL = ("updates_per_s", "frames_per_s")  # wall-clock columns of updates.csv
+
+
+def updates_rows(run):
+    return [{k: v for k, v in row.items() if k not in WALL} for row in csv_rows(run / "updates.csv")]
+
+
+def assert_same_runs(single, group):
+    """Each seed's group run folder holds its single run's episodes, update rows and final weights."""
+    for seed in SEEDS:
+        a, b = single / f"s{seed}", group / f"s{seed}"
+        rows = csv_rows(a / "episodes.csv")
+        assert len(rows) > 0 and rows == csv_rows(b / "episodes.csv"), seed
+        assert updates_rows(a) == updates_rows(b), seed
+        wa = torch.load(a / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+        wb = torch.load(b / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+        assert all(torch.equal(wa[k], wb[k]) for k in wa), seed
+    episodes = [csv_rows(single / f"s{s}" / "episodes.csv") for s in SEEDS]
+    assert all(episodes[i] != episodes[j] for i in range(len(SEEDS)) for j in range(i))  # the seeds differ
+
+
+def singles(cfg, root, demos):
+    for seed in SEEDS:
+        c = cfg.copy()
+        c.seed = seed
+        train(c, root / f"s{seed}", demos=demos)
+
+
+@pytest.mark.parametrize(("mode", "extra"), [(None, ["env.num_envs=4"]),
+                                             pytest.param("B", [], marks=pytest.mark.slow)])
+def test_k_seeds_in_one_process_write_their_single_seed_runs(compose_cfg, tmp_path, demos, mode, extra):
+    """Default on the batched engine (4 envs) and B (stage 1, then stage 2 on the reference env)."""
+    cfg = compose_cfg("train", [*TINY, *tiny_mode(mode), *extra])
+    singles(cfg, tmp_path / "single", demos)
+    summaries = train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
+    assert [s.seed for s in summaries] == list(SEEDS)
+    assert_same_runs(tmp_path / "single", tmp_path / "group")
+
+
+def test_a_killed_group_resumes_every_run_to_its_single_seed_run(compose_cfg, tmp_path, demos, monkeypatch):
+    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=3"]
+    cfg = compose_cfg("train", overrides)
+    singles(cfg, tmp_path / "single", demos)
+    original = Trainer._episodes_done
+
+    def dying(self, ends):
+        original(self, ends)
+        if int(self.cfg.seed) == 1 and self.counters.episodes >= 8:
+            raise Killed("simulated kill")
+
+    monkeypatch.setattr(Trainer, "_episodes_done", dying)
+    with pytest.raises(Killed):
+        train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
+    monkeypatch.setattr(Trainer, "_episodes_done", original)
+    assert not (tmp_path / "group" / "s1" / "summary.json").exists()
+    resumed = compose_cfg("train", [*overrides, f"resume={tmp_path / 'group'}"])
+    summaries = train_seeds(resumed, SEEDS, demos=demos)
+    done = [json.loads((tmp_path / "single" / f"s{s}" / "summary.json").read_text()) for s in SEEDS]
+    assert [(s.episodes, s.frames, s.updates) for s in summaries] == [
+        (d["episodes"], d["frames"], d["updates"]) for d in done]
+    assert all(s.episodes >= 12 for s in summaries)
+    assert_same_runs(tmp_path / "single", tmp_path / "group")
+
+
+def test_a_stop_signal_saves_every_run_and_the_group_resumes_to_the_single_seed_runs(
+        compose_cfg, tmp_path, demos, monkeypatch):
+    """SIGTERM while seed 1 takes its turn: every run of the group saves its checkpoint (not only
+    the one that saw the signal), the group stops with Interrupted, and resuming it gives the
+    single-seed runs."""
+    import signal
+
+    from memrl import stop
+
+    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=100"]
+    cfg = compose_cfg("train", overrides)
+    singles(cfg, tmp_path / "single", demos)
+    original = Trainer._episodes_done
+
+    def signalled(self, ends):
+        original(self, ends)
+        if int(self.cfg.seed) == 1 and self.counters.episodes >= 6 and stop.stop_requested() is None:
+            signal.raise_signal(signal.SIGTERM)
+
+    monkeypatch.setattr(Trainer, "_episodes_done", signalled)
+    stop.install()
+    try:
+        with pytest.raises(stop.Interrupted):
+            train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
+    finally:
+        stop.uninstall()
+        monkeypatch.setattr(Trainer, "_episodes_done", original)
+    from memrl.checkpoint import resume as ckpt
+
+    for seed in SEEDS:  # checkpoint_every=100: only the stop saved them, each past its start
+        state = ckpt.load_state(tmp_path / "group" / f"s{seed}" / "checkpoints" / "last")
+        assert 0 < state["counters"]["episodes"] < 12, seed
+    resumed = compose_cfg("train", [*overrides, f"resume={tmp_path / 'group'}"])
+    train_seeds(resumed, SEEDS, demos=demos)
+    assert_same_runs(tmp_path / "single", tmp_path / "group")
+
+
+def test_seeds_must_be_distinct(compose_cfg, tmp_path):
+    from memrl.errors import ConfigError
+
+    cfg = compose_cfg("train", TINY)
+    with pytest.raises(ConfigError, match=r"config 'seeds': need distinct seeds, got \[0, 0\]"):
+        train_seeds(cfg, [0, 0], tmp_path)
+    assert not tmp_path.joinpath("s0").exists()
+
+
+def test_the_command_trains_the_seeds_of_its_seeds_key(tmp_path):
+    """``python -m memrl.train seeds=[3,4]``: one process, run folders s3 and s4 below its output dir."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "group"
+    cmd = [sys.executable, "-m", "memrl.train", *TINY, "total_episodes=1", "seeds=[3,4]",
+           f"hydra.run.dir={out}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    for seed in (3, 4):
+        summary = json.loads((out / f"s{seed}" / "summary.json").read_text())
+        assert summary["seed"] == seed and summary["episodes"] == 1
+        assert "seeds: null" in (out / f"s{seed}" / "config.yaml").read_text()
