@@ -139,9 +139,9 @@ def test_the_warm_start_fills_exactly_its_transitions_with_the_teachers_actions_
                                                "mode.teacher.warm_start=120", "agent.warmup_frames=20",
                                                "mode.stage2.eps_start=0", "mode.stage2.eps_end=0"])
     seen = []
-    original = Learner.update
+    original = Learner.step
 
-    def update(self, batch):
+    def step(self, batch):
         if not seen:
             buffer = trainer.stage.buffer
             seen.append(getattr(buffer, "online_buffer", buffer))
@@ -151,7 +151,7 @@ def test_the_warm_start_fills_exactly_its_transitions_with_the_teachers_actions_
 
     trainer = Trainer(cfg, tmp_path / "run", demos)
     trainer.run_offline()  # stage 1's own updates
-    monkeypatch.setattr(Learner, "update", update)
+    monkeypatch.setattr(Learner, "step", step)
     updates_before = trainer.counters.updates
     trainer.run()
     agent, stored = seen[0], seen[1]
