@@ -56,6 +56,8 @@ ROWS = [
     ("train", ["seed=-1"], "seed"),
     ("train", ["seed=4294967296"], "seed"),
     ("train", ["seed=abc"], "seed"),
+    ("train", ["seeds=[-1]"], "seeds"),
+    ("train", ["seeds=[]"], "seeds"),
     ("train", ["device=gpu"], "device"),
     ("train", ["env.num_envs=0"], "num_envs"),
     ("train", ["env.num_envs=500", "buffer.capacity=400"], "env.num_envs"),
@@ -193,6 +195,7 @@ ROWS = [
     ("bench", ["eval.episodes=0"], "eval.episodes"),
     ("bench", ["pool.cars=[0]"], "pool.cars"),
     ("bench", ["pool.networks=0"], "pool.networks"),
+    ("bench", ["seeds.seeds=[0]"], "seeds.seeds"),
     ("bench", ["debug=maybe"], "debug"),
     # preview
     ("preview", ["seed=-1"], "seed"),
