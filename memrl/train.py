@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -22,6 +22,7 @@ if TYPE_CHECKING:  # torch and the trainer load on the first run, not for --help
     from memrl.dqn.loop import Summary, Trainer
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 def prior_knowledge(cfg: DictConfig) -> TensorDictBase:
@@ -98,15 +99,21 @@ def train(cfg: DictConfig, out_dir: Path | None = None,
         if not isinstance(opened, tuple):
             return opened  # finished earlier at this budget
         trainer, run_dir = opened
-        with deferred():  # a signal stops at the loop's next checkpoint
-            try:
-                summary = trainer.run()
-            except Exception as err:  # a second signal, raised at once, masked on its way up
-                if (stop := interruption(err)) is not None:
-                    raise Interrupted(stop.signum) from err
-                raise
+        summary = deferred_run(trainer.run)
     _done(summary, run_dir)
     return summary
+
+
+def deferred_run(work: Callable[[], T]) -> T:
+    """``work()`` with signals deferred (a signal stops at the loop's next checkpoint), a signal's
+    stop raised as :class:`Interrupted` even where clean-up code masked it on its way up."""
+    with deferred():
+        try:
+            return work()
+        except Exception as err:  # a second signal, raised at once, masked on its way up
+            if (stop := interruption(err)) is not None:
+                raise Interrupted(stop.signum) from err
+            raise
 
 
 def train_seeds(cfg: DictConfig, seeds: Sequence[int], out_dir: Path | None = None,
@@ -144,13 +151,7 @@ def train_seeds(cfg: DictConfig, seeds: Sequence[int], out_dir: Path | None = No
                 members.append(Member(None, summary=opened))
                 dirs.append(Path(opened.run_dir))
             outer.restore()  # the next run starts from the same outer state, as its own process
-        with deferred():
-            try:
-                summaries = run_turns(members)
-            except Exception as err:
-                if (stop := interruption(err)) is not None:
-                    raise Interrupted(stop.signum) from err
-                raise
+        summaries = deferred_run(lambda: run_turns(members))
     for summary, run_dir in zip(summaries, dirs, strict=True):
         _done(summary, run_dir)
     return summaries

@@ -34,6 +34,18 @@ def assert_same_runs(single, group):
     assert all(episodes[i] != episodes[j] for i in range(len(SEEDS)) for j in range(i))  # the seeds differ
 
 
+def when_seed_1_has(monkeypatch, episodes: int, act) -> None:
+    """``act()`` after every batch of finished episodes of seed 1's run from ``episodes`` on."""
+    original = Trainer._episodes_done
+
+    def patched(self, ends):
+        original(self, ends)
+        if int(self.cfg.seed) == 1 and self.counters.episodes >= episodes:
+            act()
+
+    monkeypatch.setattr(Trainer, "_episodes_done", patched)
+
+
 def singles(cfg, root, demos):
     for seed in SEEDS:
         c = cfg.copy()
@@ -56,17 +68,14 @@ def test_a_killed_group_resumes_every_run_to_its_single_seed_run(compose_cfg, tm
     overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=3"]
     cfg = compose_cfg("train", overrides)
     singles(cfg, tmp_path / "single", demos)
-    original = Trainer._episodes_done
 
-    def dying(self, ends):
-        original(self, ends)
-        if int(self.cfg.seed) == 1 and self.counters.episodes >= 8:
-            raise Killed("simulated kill")
+    def kill():
+        raise Killed("simulated kill")
 
-    monkeypatch.setattr(Trainer, "_episodes_done", dying)
-    with pytest.raises(Killed):
-        train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
-    monkeypatch.setattr(Trainer, "_episodes_done", original)
+    with monkeypatch.context() as patch:
+        when_seed_1_has(patch, 8, kill)
+        with pytest.raises(Killed):
+            train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
     assert not (tmp_path / "group" / "s1" / "summary.json").exists()
     resumed = compose_cfg("train", [*overrides, f"resume={tmp_path / 'group'}"])
     summaries = train_seeds(resumed, SEEDS, demos=demos)
@@ -89,21 +98,19 @@ def test_a_stop_signal_saves_every_run_and_the_group_resumes_to_the_single_seed_
     overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=100"]
     cfg = compose_cfg("train", overrides)
     singles(cfg, tmp_path / "single", demos)
-    original = Trainer._episodes_done
 
-    def signalled(self, ends):
-        original(self, ends)
-        if int(self.cfg.seed) == 1 and self.counters.episodes >= 6 and stop.stop_requested() is None:
+    def signal_once():
+        if stop.stop_requested() is None:
             signal.raise_signal(signal.SIGTERM)
 
-    monkeypatch.setattr(Trainer, "_episodes_done", signalled)
     stop.install()
     try:
-        with pytest.raises(stop.Interrupted):
-            train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
+        with monkeypatch.context() as patch:
+            when_seed_1_has(patch, 6, signal_once)
+            with pytest.raises(stop.Interrupted):
+                train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
     finally:
         stop.uninstall()
-        monkeypatch.setattr(Trainer, "_episodes_done", original)
     from memrl.checkpoint import resume as ckpt
 
     for seed in SEEDS:  # checkpoint_every=100: only the stop saved them, each past its start

@@ -179,6 +179,11 @@ def check_across_nodes(cfg: DictConfig, demo_share: float) -> None:
           f"must be >= agent.batch_size ({a.batch_size}), got {b.capacity}")
     _need(cfg.total_frames is not None or cfg.total_episodes is not None, "total_frames",
           "set total_frames or total_episodes (or both)")
+    if a.update_mode == "captured":  # CUDA graphs
+        from memrl.envs.batched import resolve_device
+
+        _need(resolve_device(cfg.device).type == "cuda", "agent.update_mode",
+              f"captured needs a CUDA device (device={cfg.device}); use agent.update_mode=compiled")
     agent_part = int(b.capacity) - int(round(demo_share * int(b.capacity)))
     n_envs = int(cfg.env.num_envs)
     _need(agent_part >= n_envs, "env.num_envs",

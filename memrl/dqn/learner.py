@@ -14,7 +14,7 @@ from torchrl.objectives import DQNLoss, HardUpdate
 
 from memrl.data.priority_sampler import TD_KEY
 from memrl.dqn.augment import shift_batch
-from memrl.dqn.config import AgentConfig
+from memrl.dqn.config import UPDATE_MODES, AgentConfig
 from memrl.losses import LossTerm, td_term
 from memrl.modules.qnet import QNetwork, acting_actor, make_q_actor
 from memrl.values import QFunctions
@@ -63,8 +63,8 @@ def compile_qnet(qnet: QNetwork, batch_sizes: tuple[int, ...] = (1, 32),
 
 def update_mode(mode: str, device: torch.device) -> str:
     """``agent.update_mode``, checked against the device (``captured``: CUDA graphs, CUDA only)."""
-    if mode not in ("eager", "compiled", "captured"):
-        raise ValueError(f"agent.update_mode: unknown {mode!r} (eager, compiled, captured)")
+    if mode not in UPDATE_MODES:
+        raise ValueError(f"agent.update_mode: unknown {mode!r} ({', '.join(UPDATE_MODES)})")
     if mode == "captured" and device.type != "cuda":
         raise ValueError(f"agent.update_mode=captured needs a CUDA device (device is {device.type}); "
                          "use agent.update_mode=compiled")

@@ -137,6 +137,7 @@ class Trainer:
         self._recent: deque[dict[str, Any]] = deque(maxlen=20)
         self._losses: deque[float] = deque(maxlen=100_000)
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []  # (loss, demo count) not read back yet
+        self._readback_every = int(cfg.agent.loss_readback)
         self._checkpointed_at = 0  # episodes at the last checkpoint
         self.resumed_from: int | None = None
         self._wall_before: float | None = 0.0  # training seconds of earlier calls (None: unknown)
@@ -380,7 +381,7 @@ class Trainer:
             self.counters.updates += 1
             self._pending.append((loss, batch["is_demo"].sum()))
             self._last_batch = batch
-            if len(self._pending) >= int(self.cfg.agent.loss_readback):
+            if len(self._pending) >= self._readback_every:
                 self._read_back()
             if self.counters.updates % int(self.cfg.log_every) == 0:
                 self._log_updates()

@@ -73,13 +73,14 @@ def run_turns(members: Sequence[Member]) -> list[Summary]:
     (SIGINT / SIGTERM, :mod:`memrl.stop`) saves every member that a checkpoint resumes exactly,
     as a single run does, then raises."""
     live = [m for m in members if m.trainer is not None]
+    current: Member | None = None  # whose turn it is
     try:
-        for m in live:
-            with m.turn():
-                m.trainer.begin()  # type: ignore[union-attr]
+        for current in live:
+            with current.turn():
+                current.trainer.begin()  # type: ignore[union-attr]
         while live:
-            for m in list(live):
-                trainer = m.trainer
+            for current in list(live):
+                m, trainer = current, current.trainer
                 assert trainer is not None
                 with m.turn():
                     if trainer.done():
@@ -92,7 +93,7 @@ def run_turns(members: Sequence[Member]) -> list[Summary]:
     except BaseException as err:
         if interruption(err) is not None or stop_requested():
             for m in live:  # the member that saw the stop saved itself; the others save here
-                if m.trainer is not None and m.trainer.can_stop():
+                if m is not current and m.trainer is not None and m.trainer.can_stop():
                     with m.turn():
                         m.trainer.save_checkpoint()
         raise
