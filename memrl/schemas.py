@@ -687,7 +687,11 @@ class StudyConfig:
     report_overrides: list[str] = field(default_factory=list)
     """Overrides of the report config (``conf/report.yaml``), e.g. [n_resamples=2000]."""
     jobs: int = spec(1, ge=1)
-    """Training runs at once (more than 1: spawned processes)."""
+    """Training processes at once (more than 1: spawned processes)."""
+    seeds_per_process: int = spec(1, ge=1)
+    """Seeds of one (variant, mode, opponent) trained in one process, their turns in order
+    (:func:`memrl.train.train_group`): each run's folder, checkpoints and resume are its own
+    single-seed run's. On the CPU a convenience (fewer processes, one import), not a speed-up."""
     workers: int = spec(2, ge=0)
     """Evaluation processes (0: one per CPU)."""
     batch: int = spec(8, ge=1)

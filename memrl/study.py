@@ -73,6 +73,7 @@ def command_line(cfg: DictConfig) -> str:
         args = [f"study.dir={s.dir}", f"study.modes=[{','.join(s.modes)}]",
                 f"study.seeds=[{','.join(map(str, s.seeds))}]",
                 f"study.opponents=[{','.join(s.opponents)}]", f"study.jobs={s.jobs}",
+                f"study.seeds_per_process={s.seeds_per_process}",
                 f"study.train_overrides={json.dumps(list(s.train_overrides))}"]
         if s.get("extend_from"):
             args.append(f"study.extend_from={s.extend_from}")
@@ -174,6 +175,19 @@ def trained_only(cfg: DictConfig, folder: Path, outcome: Outcome, extended: list
     return result
 
 
+def seeds_per_process(cfg: DictConfig, grid: list[Cell]) -> int:
+    """``study.seeds_per_process``, or 1 where the runs' config keeps them apart
+    (:func:`memrl.train.group_refusal`), said once."""
+    from memrl.train import group_refusal
+
+    k = int(cfg.study.seeds_per_process)
+    why = next((w for c in grid if c.cfg is not None and (w := group_refusal(c.cfg))), None)
+    if k > 1 and why:
+        log.warning("study.seeds_per_process=%d: one seed per process instead: %s", k, why)
+        return 1
+    return k
+
+
 def study(cfg: DictConfig) -> StudyResult:
     """Train, evaluate and report the grid of ``cfg.study`` in ``cfg.study.dir`` (resuming).
 
@@ -220,7 +234,8 @@ def study(cfg: DictConfig) -> StudyResult:
         earlier = sources(grid, Path(str(s.extend_from))) if s.extend_from else []
         check_record(folder, cfg)
         extended = extend(earlier, folder / STUDY_JSON)
-        outcome = run_cells(grid, int(s.jobs), finished=evaluate_early if s.evaluate == "each" else None)
+        outcome = run_cells(grid, int(s.jobs), finished=evaluate_early if s.evaluate == "each" else None,
+                            per_process=seeds_per_process(cfg, grid))
         if s.evaluate == "none":
             return trained_only(cfg, folder, outcome, extended, start)
     else:  # an interim report: the runs finished so far

@@ -122,10 +122,6 @@ def train_seeds(cfg: DictConfig, seeds: Sequence[int], out_dir: Path | None = No
     (:mod:`memrl.dqn.seed_group`): run folders ``<out_dir>/s<seed>``, each what that seed's own
     run writes. With ``cfg.resume`` set (the group's folder), every run continues from its own
     checkpoint. Every seed's config is checked before any folder is made."""
-    from contextlib import ExitStack
-
-    from memrl.dqn.seed_group import Member, RngState, run_turns
-
     if not seeds or len(set(seeds)) != len(seeds):
         from memrl.errors import config_error
 
@@ -137,23 +133,59 @@ def train_seeds(cfg: DictConfig, seeds: Sequence[int], out_dir: Path | None = No
         c.seed, c.seeds = int(seed), None  # each run's config is its single-seed run's
         if cfg.resume:
             c.resume = str(group / f"s{seed}")
-        check_train(c)
         cfgs.append(c)
+    return train_group(cfgs, [group / f"s{seed}" for seed in seeds], demos)
+
+
+ONE_RUN_LOGGERS = {"WandbLogger": ("wandb", "W&B"), "MLFlowLogger": ("mlflow", "MLflow")}
+"""Backends with one active run per process (``wandb.init``, ``mlflow.start_run``)."""
+
+
+def group_refusal(cfg: DictConfig) -> str | None:
+    """Why ``cfg``'s runs cannot share a process (None: they can)."""
+    target = str((cfg.get("logger") or {}).get("_target_", "")).rsplit(".", 1)[-1]
+    if target in ONE_RUN_LOGGERS:
+        group, backend = ONE_RUN_LOGGERS[target]
+        return (f"logger={group} keeps one active run per process ({backend}); train these seeds in "
+                "processes of their own, or use logger=tensorboard, csv or none")
+    return None
+
+
+def train_group(cfgs: Sequence[DictConfig], run_dirs: Sequence[Path],
+                demos: TensorDictBase | None = None) -> list[Summary]:
+    """Train the runs ``cfgs`` (each a single run's config: its own seed, ``resume`` its folder
+    or null) into ``run_dirs`` in this process, their turns in order
+    (:mod:`memrl.dqn.seed_group`); each run writes what its own process writes. Every config is
+    checked before any folder is made; a run finished earlier at its budget is only reported."""
+    from contextlib import ExitStack
+
+    from memrl.dqn.seed_group import Member, RngState, active_run, run_turns
+
+    if len(cfgs) != len(run_dirs):
+        raise ValueError(f"{len(cfgs)} configs for {len(run_dirs)} run folders")
+    for c in cfgs:
+        check_train(c)
+        if len(cfgs) > 1 and (why := group_refusal(c)):
+            from memrl.errors import config_error
+
+            raise config_error("logger", why)
     outer = RngState.now()
     members, dirs = [], []
     with ExitStack() as stack:
-        for c in cfgs:
-            opened = stack.enter_context(opened_run(c, group / f"s{c.seed}", demos))
+        for c, run_dir in zip(cfgs, run_dirs, strict=True):
+            with active_run(Path(c.resume) if c.resume else Path(run_dir)):
+                opened = stack.enter_context(opened_run(c, Path(run_dir), demos))
             if isinstance(opened, tuple):
-                members.append(Member(opened[0]))  # the generators as its Trainer left them
+                members.append(Member(opened[0], run_dir=opened[1]))  # generators as its Trainer left them
                 dirs.append(opened[1])
             else:
-                members.append(Member(None, summary=opened))
+                members.append(Member(None, summary=opened, run_dir=Path(opened.run_dir)))
                 dirs.append(Path(opened.run_dir))
             outer.restore()  # the next run starts from the same outer state, as its own process
         summaries = deferred_run(lambda: run_turns(members))
     for summary, run_dir in zip(summaries, dirs, strict=True):
-        _done(summary, run_dir)
+        with active_run(run_dir):
+            _done(summary, run_dir)
     return summaries
 
 

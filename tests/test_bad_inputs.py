@@ -215,6 +215,7 @@ ROWS = [
     ("study", ["study.opponents=[nobody]"], "study.opponents"),
     ("study", ["study.baselines=[human]"], "study.baselines"),
     ("study", ["study.jobs=0"], "study.jobs"),
+    ("study", ["study.seeds_per_process=0"], "study.seeds_per_process"),
     ("study", ["study.workers=-1"], "study.workers"),
     ("study", ["study.batch=0"], "study.batch"),
     ("study", ["study.stage1=maybe"], "study.stage1"),

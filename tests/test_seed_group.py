@@ -144,3 +144,14 @@ def test_the_command_trains_the_seeds_of_its_seeds_key(tmp_path):
         summary = json.loads((out / f"s{seed}" / "summary.json").read_text())
         assert summary["seed"] == seed and summary["episodes"] == 1
         assert "seeds: null" in (out / f"s{seed}" / "config.yaml").read_text()
+
+
+@pytest.mark.parametrize(("logger", "backend"), [("wandb", "W&B"), ("mlflow", "MLflow")])
+def test_a_logger_of_one_run_per_process_is_refused_before_any_folder(compose_cfg, tmp_path, logger, backend):
+    from memrl.errors import ConfigError
+
+    cfg = compose_cfg("train", [*TINY, f"logger={logger}"])
+    with pytest.raises(ConfigError, match=rf"config 'logger': logger={logger} keeps one active run per "
+                                          rf"process \({backend}\)"):
+        train_seeds(cfg, [0, 1], tmp_path / "group")
+    assert not (tmp_path / "group").exists()

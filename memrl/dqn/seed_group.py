@@ -17,6 +17,7 @@ import random
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,25 @@ import torch
 
 from memrl.dqn.loop import Summary, Trainer
 from memrl.stop import interruption, stop_requested
+
+_ACTIVE: list[Path | None] = [None]
+"""The run folder whose turn it is (None: no run of a group): :func:`active_run`."""
+
+
+def current_run() -> Path | None:
+    """The run folder of the group member whose turn it is, e.g. for a log filter that writes
+    each run's lines into its own ``train.log`` (None outside a turn)."""
+    return _ACTIVE[0]
+
+
+@contextmanager
+def active_run(run_dir: Path | None) -> Iterator[None]:
+    """:func:`current_run` is ``run_dir`` for the block."""
+    before, _ACTIVE[0] = _ACTIVE[0], run_dir
+    try:
+        yield
+    finally:
+        _ACTIVE[0] = before
 
 
 @dataclass
@@ -55,6 +75,8 @@ class Member:
     trainer: Trainer | None
     rng: RngState = field(default_factory=RngState.now)
     summary: Summary | None = None
+    run_dir: Path | None = None
+    """Its folder, :func:`current_run` during its turns."""
 
     @contextmanager
     def turn(self) -> Iterator[None]:
@@ -62,7 +84,8 @@ class Member:
         outer = RngState.now()
         self.rng.restore()
         try:
-            yield
+            with active_run(self.run_dir):
+                yield
         finally:
             self.rng = RngState.now()
             outer.restore()

@@ -5,7 +5,9 @@ Each cell is trained by calling :func:`memrl.train.train` on the train config co
 Hydra's compose API (the user's ``study.train_overrides``, its variant's overrides from
 ``study.variants``, a ``mode.<key>`` one only for the modes that have that key, then the
 cell's mode, opponent, seed and variant name), in this process
-(``study.jobs=1``) or in ``study.jobs`` spawned processes. Why not Hydra's launcher: every cell
+(``study.jobs=1``) or in ``study.jobs`` spawned processes, one cell per process or, with
+``study.seeds_per_process=K``, up to K seeds of one configuration per process
+(:func:`memrl.train.train_group`). Why not Hydra's launcher: every cell
 needs its own decision first (skip a finished run, ``resume=`` a killed one, start a new one),
 and the study evaluates each run as it finishes (``study.evaluate``) and reports once all
 cells are done; a sweep of the train app decides neither.
@@ -15,8 +17,9 @@ from __future__ import annotations
 
 import logging
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -131,33 +134,78 @@ class Outcome:
 def train_cell(cfg: DictConfig, run_dir: str, resume: bool) -> dict[str, Any]:
     """Train (or resume) one cell; its log goes to ``<run>/train.log``. Runs in a worker
     process too, so it takes and returns plain values."""
+    return train_cells([cfg], [run_dir], [resume])[0]
+
+
+def train_cells(cfgs: Sequence[DictConfig], run_dirs: Sequence[str],
+                resumes: Sequence[bool]) -> list[dict[str, Any]]:
+    """Train (or resume) cells in this process: one with :func:`memrl.train.train`, several (the
+    seeds of one configuration, ``study.seeds_per_process``) with
+    :func:`memrl.train.train_group`, each run writing what its own process writes and its log
+    lines going to its own ``<run>/train.log``. Takes and returns plain values (worker processes)."""
     import dataclasses
 
-    from memrl.train import train
+    from memrl.train import train, train_group
 
-    path = Path(run_dir)
-    path.mkdir(parents=True, exist_ok=True)
-    cfg = cfg.copy()
-    cfg.resume = str(path) if resume else None
-    # Hand-written: outside a Hydra run nothing writes the run's train.log (Hydra's job_logging)
-    handler = logging.FileHandler(path / "train.log")
-    handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+    paths = [Path(r) for r in run_dirs]
+    runs = []
+    for cfg, path, resume in zip(cfgs, paths, resumes, strict=True):
+        path.mkdir(parents=True, exist_ok=True)
+        cfg = cfg.copy()
+        cfg.resume = str(path) if resume else None
+        runs.append(cfg)
+    where = paths[0] if len(paths) == 1 else ", ".join(map(str, paths))
+    with run_logs(paths):
+        try:
+            if len(runs) == 1:
+                return [dataclasses.asdict(train(runs[0], paths[0]))]
+            return [dataclasses.asdict(s) for s in train_group(runs, paths)]
+        except (Interrupted, KeyboardInterrupt) as stop:  # asked for: no failure, no traceback
+            log.info("training %s: %s; its checkpoint is kept", where, stop or "stopped by Ctrl-C")
+            raise
+        except BaseException:
+            log.exception("training %s failed", where)  # the traceback into the runs' train.log
+            raise
+
+
+class _OwnRun(logging.Filter):
+    """Passes the lines of its run's turns and those outside any run's turn (a group's own)."""
+
+    def __init__(self, run_dir: Path) -> None:
+        super().__init__()
+        self.run_dir = run_dir
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from memrl.dqn.seed_group import current_run
+
+        now = current_run()
+        return now is None or now == self.run_dir
+
+
+@contextmanager
+def run_logs(paths: Sequence[Path]) -> Iterator[None]:
+    """Each run's lines into its ``train.log`` for the block, INFO and up.
+    Hand-written: outside a Hydra run nothing writes a run's train.log (Hydra's job_logging)."""
+    fmt = logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
+    handlers = []
+    for path in paths:
+        handler = logging.FileHandler(path / "train.log")
+        handler.setFormatter(fmt)
+        if len(paths) > 1:
+            handler.addFilter(_OwnRun(path))
+        handlers.append(handler)
     root = logging.getLogger()
-    root.addHandler(handler)
+    for handler in handlers:
+        root.addHandler(handler)
     level = root.level
     root.setLevel(min(level, logging.INFO) if level else logging.INFO)
     try:
-        return dataclasses.asdict(train(cfg, path))
-    except (Interrupted, KeyboardInterrupt) as stop:  # asked for: no failure, no traceback
-        log.info("training %s: %s; its checkpoint is kept", path, stop or "stopped by Ctrl-C")
-        raise
-    except BaseException:
-        log.exception("training %s failed", path)  # the traceback into the run's train.log
-        raise
+        yield
     finally:
-        root.removeHandler(handler)
+        for handler in handlers:
+            root.removeHandler(handler)
+            handler.close()
         root.setLevel(level)
-        handler.close()
 
 
 def _last_line(err: BaseException) -> str:
@@ -181,44 +229,67 @@ def plan(grid: Sequence[Cell], out: Outcome) -> list[tuple[Cell, bool]]:
     return todo
 
 
+def process_groups(todo: Sequence[tuple[Cell, bool]], per_process: int) -> list[list[tuple[Cell, bool]]]:
+    """The cells to train, ``per_process`` at most per process: consecutive seeds of one
+    (variant, mode, opponent) share one, in the grid's order (1: each cell its own)."""
+    from itertools import groupby
+
+    out: list[list[tuple[Cell, bool]]] = []
+    for _, same in groupby(todo, key=lambda cr: (cr[0].variant, cr[0].mode, cr[0].opponent)):
+        items = list(same)
+        out += [items[i:i + per_process] for i in range(0, len(items), max(1, per_process))]
+    return out
+
+
+GroupTrainer = Callable[[Sequence[DictConfig], Sequence[str], Sequence[bool]], list[dict[str, Any]]]
+
+
 def run_cells(grid: Sequence[Cell], jobs: int,
               trainer: Callable[[DictConfig, str, bool], dict[str, Any]] = train_cell,
-              finished: Callable[[Cell], None] | None = None) -> Outcome:
-    """Train every unfinished cell (:func:`plan`), ``jobs`` at once; a failing cell is
-    recorded and the others go on. ``finished`` is called here, in this process, with each
-    cell as it finishes (in the order they finish; the others train on meanwhile). The
-    outcome's lists keep the grid's order."""
+              finished: Callable[[Cell], None] | None = None, per_process: int = 1,
+              group_trainer: GroupTrainer = train_cells) -> Outcome:
+    """Train every unfinished cell (:func:`plan`), ``jobs`` processes at once, each training one
+    cell with ``trainer`` or up to ``per_process`` seeds of one configuration with
+    ``group_trainer`` (:func:`process_groups`); a failing process fails its unfinished cells and
+    the others go on. ``finished`` is called here, in this process, with each cell as it
+    finishes (in the order their processes end; the others train on meanwhile). The outcome's
+    lists keep the grid's order."""
     out = Outcome()
-    todo = plan(grid, out)
+    units = process_groups(plan(grid, out), per_process)
 
-    def done(cell: Cell, resume: bool, error: BaseException | None) -> None:
-        if error is None:
-            (out.resumed if resume else out.trained).append(cell.name)
-            log.info("%s finished", cell.name)
-            if finished is not None:
-                finished(cell)
-        else:
-            out.failed[cell.name] = _last_line(error)
-            log.error("%s failed: %s (log: %s)", cell.name, out.failed[cell.name],
-                      cell.run_dir / "train.log")
+    def done(unit: list[tuple[Cell, bool]], error: BaseException | None) -> None:
+        for cell, resume in unit:
+            if error is None or (len(unit) > 1 and cell.finished()):  # it finished before the error
+                (out.resumed if resume else out.trained).append(cell.name)
+                log.info("%s finished", cell.name)
+                if finished is not None:
+                    finished(cell)
+            else:
+                out.failed[cell.name] = _last_line(error)
+                log.error("%s failed: %s (log: %s)", cell.name, out.failed[cell.name],
+                          cell.run_dir / "train.log")
 
-    if jobs <= 1 or len(todo) <= 1:
-        for cell, resume in todo:
+    def submit(call: Callable[..., Any], unit: list[tuple[Cell, bool]]) -> Any:
+        if len(unit) == 1:
+            cell, resume = unit[0]
+            return call(trainer, cell.cfg, str(cell.run_dir), resume)
+        return call(group_trainer, [c.cfg for c, _ in unit], [str(c.run_dir) for c, _ in unit],
+                    [r for _, r in unit])
+
+    if jobs <= 1 or len(units) <= 1:
+        for unit in units:
             error: BaseException | None = None
             try:
-                trainer(cell.cfg, str(cell.run_dir), resume)  # type: ignore[arg-type]
+                submit(lambda f, *a: f(*a), unit)
             except Exception as err:  # one failing run must not stop the study
                 error = err
-            done(cell, resume, error)
-        return out
-    # spawn: a fresh interpreter per worker (no forked torch / OpenMP state)
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
-                             initializer=worker_start) as pool, stopped_with_parent(pool):
-        futures: dict[Future, tuple[Cell, bool]] = {
-            pool.submit(trainer, cell.cfg, str(cell.run_dir), resume): (cell, resume)  # type: ignore[arg-type]
-            for cell, resume in todo}
-        for fut in as_completed(futures):
-            done(*futures[fut], fut.exception())
+            done(unit, error)
+    else:  # spawn: a fresh interpreter per worker (no forked torch / OpenMP state)
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
+                                 initializer=worker_start) as pool, stopped_with_parent(pool):
+            futures: dict[Future, list[tuple[Cell, bool]]] = {submit(pool.submit, u): u for u in units}
+            for fut in as_completed(futures):
+                done(futures[fut], fut.exception())
     order = {c.name: i for i, c in enumerate(grid)}
     out.trained.sort(key=order.__getitem__)
     out.resumed.sort(key=order.__getitem__)
