@@ -17,3 +17,16 @@ def fake_trainer(cfg: Any, run_dir: str, resume: bool) -> dict[str, Any]:
     summary = {"run_dir": run_dir, "resume": resume}
     (path / "summary.json").write_text(json.dumps(summary))
     return summary
+
+
+def fake_group_trainer(cfgs: Any, run_dirs: list[str], resumes: list[bool]) -> list[dict[str, Any]]:
+    """:func:`fake_trainer` for each run in turn, in one process (its id in each summary): a
+    ``*_s1`` run fails the group after the runs before it finished."""
+    import os
+
+    out = []
+    for cfg, run_dir, resume in zip(cfgs, run_dirs, resumes, strict=True):
+        out.append(fake_trainer(cfg, run_dir, resume))
+        summary = {**out[-1], "pid": os.getpid()}
+        (Path(run_dir) / "summary.json").write_text(json.dumps(summary))
+    return out

@@ -113,12 +113,34 @@ def test_seeds_per_process_is_in_the_typed_command_line(compose_cfg, tmp_path, p
     assert f"study.seeds_per_process={per_process}" in cmd
 
 
-def test_a_logger_of_one_run_per_process_keeps_the_study_at_one_seed_per_process(compose_cfg, tmp_path, caplog):
-    from memrl.study import seeds_per_process
+def test_a_logger_of_one_run_per_process_keeps_the_study_at_one_seed_per_process(
+        compose_cfg, tmp_path, caplog):
     from memrl.studies.grid import cells
+    from memrl.study import seeds_per_process
 
     tb = study_cfg(compose_cfg, tmp_path, "[0,1]", 2, [*TINY, "logger=tensorboard"])
     assert seeds_per_process(tb, cells(tb.study, tmp_path / "runs")) == 2
     wb = study_cfg(compose_cfg, tmp_path, "[0,1]", 2, [*TINY, "logger=wandb"])
     assert seeds_per_process(wb, cells(wb.study, tmp_path / "runs")) == 1
     assert "study.seeds_per_process=2: one seed per process instead: logger=wandb keeps one" in caplog.text
+
+
+def test_groups_train_in_spawned_processes_and_a_failing_run_fails_only_what_is_unfinished(tmp_path):
+    import json
+
+    from memrl.studies.grid import Cell, run_cells
+    from tests.study_helpers import fake_group_trainer, fake_trainer
+
+    grid = [Cell("Default", "constant", s, tmp_path / f"Default_constant_s{s}", [], OmegaConf.create({}))
+            for s in (0, 1, 2, 3, 4)]
+    seen: list[str] = []
+    out = run_cells(grid, jobs=2, trainer=fake_trainer, finished=lambda c: seen.append(c.name),
+                    per_process=2, group_trainer=fake_group_trainer)
+    assert out.trained == ["Default_constant_s0", "Default_constant_s2", "Default_constant_s3",
+                           "Default_constant_s4"]
+    assert out.failed == {"Default_constant_s1": "RuntimeError: Default_constant_s1 diverged"}
+    assert sorted(seen) == out.trained
+    pid = {s: json.loads((tmp_path / f"Default_constant_s{s}" / "summary.json").read_text()).get("pid")
+           for s in (0, 2, 3)}
+    assert pid[2] == pid[3] and pid[0] not in (pid[2], None)  # s2 and s3 shared one process
+    assert "pid" not in json.loads((tmp_path / "Default_constant_s4" / "summary.json").read_text())  # alone
