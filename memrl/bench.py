@@ -78,6 +78,12 @@ def _seeds(cfg: DictConfig) -> dict[str, Any]:
     return seeds_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
 
 
+def _group(cfg: DictConfig) -> dict[str, Any]:
+    from memrl.benchmarks import group_speed
+
+    return group_speed.run(**OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+
 def _eval(cfg: DictConfig) -> dict[str, Any]:
     from memrl.benchmarks import eval_speed
 
@@ -90,7 +96,7 @@ BENCHMARKS: dict[str, Callable[[DictConfig], dict[str, Any]]] = {"env": _env, "s
                                                                  "memory": _memory,
                                                                  "e2e": _e2e, "batched": _batched,
                                                                  "eval": _eval, "pool": _pool,
-                                                                 "seeds": _seeds}
+                                                                 "seeds": _seeds, "group": _group}
 
 
 def machine() -> dict[str, Any]:

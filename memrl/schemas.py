@@ -456,7 +456,7 @@ def check_deploy(cfg: DictConfig) -> None:
 # bench
 
 BENCHMARK_NAMES = ("env", "opponents", "batched", "learner", "memory", "e2e", "stage1", "eval", "pool",
-                   "seeds")
+                   "seeds", "group")
 
 
 @dataclass
@@ -528,6 +528,14 @@ class SeedsBench:
 
 
 @dataclass
+class GroupBench:
+    seeds: int = spec(ge=1)
+    frames: int = spec(ge=1)
+    rounds: int = spec(ge=1)
+    overrides: list[str] = MISSING
+
+
+@dataclass
 class Stage1Bench:
     updates: int = spec(ge=1)
     variants: list[Any] = MISSING
@@ -595,6 +603,7 @@ class BenchSchema:
     eval: EvalBench = field(default_factory=EvalBench)
     pool: PoolBench = field(default_factory=PoolBench)
     seeds: SeedsBench = field(default_factory=SeedsBench)
+    group: GroupBench = field(default_factory=GroupBench)
     debug: bool = MISSING
     paths: Any = MISSING
 

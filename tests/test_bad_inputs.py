@@ -197,6 +197,7 @@ ROWS = [
     ("bench", ["pool.cars=[0]"], "pool.cars"),
     ("bench", ["pool.networks=0"], "pool.networks"),
     ("bench", ["seeds.seeds=[0]"], "seeds.seeds"),
+    ("bench", ["group.seeds=0"], "group.seeds"),
     ("bench", ["debug=maybe"], "debug"),
     # preview
     ("preview", ["seed=-1"], "seed"),
