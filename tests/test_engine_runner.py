@@ -200,3 +200,24 @@ def test_a_replayed_episode_with_a_step_hook_is_the_evaluated_one():
                   hook=lambda env, px, action, rec: views.append(px[-1].copy())).records[0]
     assert one == recs[3 + 2]
     assert len(views) == one.steps + 1
+
+
+def test_k_actors_on_one_engine_get_the_records_each_gets_alone():
+    """Three checkpoints on one engine per job: each actor's records (and, all episodes at once,
+    its recorded Q-values bit for bit: its rows are the batch it gets alone) are its own run's;
+    with 2 envs per job and actor, envs change hands between actors and the records still match."""
+    actors = [GreedyActor(qnet(*net), gamma=0.95) for net in NETS[:3]]
+    jobs = protocol_jobs(6, 60)
+    alone = [engine_runner.run_jobs_on_engine(a, jobs, record=True) for a in actors]
+    together = engine_runner.run_actors_on_engine(actors, jobs, record=True)
+    key = lambda r: (r.initial_lane, r.episode)  # noqa: E731
+    for a, t in zip(alone, together, strict=True):
+        assert len(a.records) == 12 and sorted(t.records, key=key) == sorted(a.records, key=key)
+        ta, tt = sorted(a.traces, key=key), sorted(t.traces, key=key)
+        assert len(ta) == len(tt) == 12
+        for x, y in zip(ta, tt, strict=True):
+            assert np.array_equal(x.q, y.q) and np.array_equal(x.actions, y.actions), key(x)
+    assert len({tuple(r.steps for r in sorted(a.records, key=key)) for a in alone}) == 3  # the actors differ
+    small = engine_runner.run_actors_on_engine(actors, jobs, batch=2)
+    for a, t in zip(alone, small, strict=True):
+        assert sorted(t.records, key=key) == sorted(a.records, key=key) and not t.traces

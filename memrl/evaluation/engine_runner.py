@@ -8,6 +8,10 @@ engine steps, and an env whose episode ended starts the job's next queued episod
 its seed: the gym env's scene of that seed). The records are those of the gym-env path of
 :func:`~memrl.evaluation.runner.run_jobs`, episode by episode (``tests/test_engine_runner.py``):
 the engine is the reference env step for step (``tests/test_batched.py``).
+
+:func:`run_actors_on_engine` drives the same jobs for K actors (K checkpoints) on one engine per
+job: every env slot drives one actor's episode, each step each actor acts on its own envs' stacks,
+and each actor's records are those it gets on its own (``tests/test_engine_runner.py``).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from memrl.evaluation.crash_sight import EpisodeTrace
 from memrl.evaluation.jobs import Actor, Job, JobResult, torch_threads
 from memrl.evaluation.protocol import EpisodeRecord, closing_or_none
 
-__all__ = ["engine_can_run", "resolve_device", "run_jobs_on_engine", "torch_threads"]
+__all__ = ["engine_can_run", "resolve_device", "run_actors_on_engine", "run_jobs_on_engine", "torch_threads"]
 
 
 def engine_can_run(job: Job) -> bool:
@@ -41,14 +45,21 @@ def engine_can_run(job: Job) -> bool:
 
 
 class _Lane:
-    """One job on its own engine of up to ``batch`` envs: which episode each env drives."""
+    """One job on its own engine of up to ``batch`` envs per actor: which actor's episode each
+    env drives."""
 
-    def __init__(self, job: Job, batch: int | None, device: torch.device, frame_stack: int) -> None:
-        n = min(batch or len(job.episodes), len(job.episodes))
-        self.job, self.queue = job, deque(job.episodes)
+    def __init__(self, job: Job, batch: int | None, device: torch.device, frame_stack: int,
+                 owners: int = 1) -> None:
+        n = owners * min(batch or len(job.episodes), len(job.episodes))
+        self.job = job
+        self.queue = deque((k, i, s) for i, s in job.episodes for k in range(owners))
+        """(actor, episode index, reset seed) still to drive, the actors taking turns (every
+        actor drives from the first step: the first step's outputs hold every key)."""
         self.engine = BatchedLaneChange(job.env, n, device, frame_stack)
         self.index, self.seed = [-1] * n, [0] * n
         """Episode index (-1: idle, the queue ran out) and reset seed per env."""
+        self.owner = torch.zeros(n, dtype=torch.long, device=device)
+        """The actor whose episode each env drives."""
         self.start_lane, self.target_lane, self.vehicles = [-1] * n, [-1] * n, [-1] * n
         self.ret = torch.zeros(n, dtype=torch.float64, device=device)
         """Return so far per env, summed step by step in float64 like the gym path."""
@@ -79,24 +90,27 @@ class _Lane:
         self.trace["action"][idx, t] = actions
         self.trace["reward"][idx, t] = reward[idx].float()
 
-    def traces(self, ids: list[int], collided: list[bool]) -> list[EpisodeTrace]:
-        """The recorded steps of the episodes that just ended in envs ``ids``."""
+    def traces(self, ids: list[int], collided: list[bool],
+               gives_risk: Sequence[bool] = (True,)) -> list[EpisodeTrace]:
+        """The recorded steps of the episodes that just ended in envs ``ids`` (a risk row for
+        the actors ``gives_risk`` marks)."""
         if not self.trace:
             return []
         rows = {key: v[ids].cpu().numpy() for key, v in self.trace.items()}
-        steps = self.steps[ids].tolist()
+        steps, owner = self.steps[ids].tolist(), self.owner[ids].tolist()
         return [EpisodeTrace(self.job.initial_lane, self.index[i], rows["q"][k, :n],
                              rows["action"][k, :n], rows["reward"][k, :n], bool(c),
-                             rows["risk"][k, :n] if "risk" in rows else None)
-                for k, (i, n, c) in enumerate(zip(ids, steps, collided, strict=True))]
+                             rows["risk"][k, :n] if "risk" in rows and gives_risk[o] else None)
+                for k, (i, n, c, o) in enumerate(zip(ids, steps, collided, owner, strict=True))]
 
     def fill(self, ids: Sequence[int]) -> None:
         """Start the next queued episodes in envs ``ids``; the ones left over go idle."""
-        start = []
+        start, owners = [], []
         for i in ids:
             if self.queue:
-                self.index[i], self.seed[i] = self.queue.popleft()
+                k, self.index[i], self.seed[i] = self.queue.popleft()
                 start.append(i)
+                owners.append(k)
             else:
                 self.index[i] = -1
                 self.active[i] = False
@@ -109,6 +123,7 @@ class _Lane:
         for i in start:
             self.start_lane[i], self.target_lane[i], self.vehicles[i] = lanes[i], targets[i], cars[i]
         idx = torch.as_tensor(start, device=self.engine.device)
+        self.owner[idx] = torch.as_tensor(owners, device=self.engine.device)
         self.ret[idx] = 0.0
         self.steps[idx] = 0
         self.active[idx] = True
@@ -143,26 +158,89 @@ def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None =
         record: keep each episode's Q-values, actions and rewards (``JobResult.traces``;
             ``gives_values`` actors only).
     """
-    if not actor.tensor_policy:
-        raise TypeError(f"{type(actor).__name__} acts through the env; the engine runs tensor_policy actors")
+    [out] = run_actors_on_engine([actor], jobs, batch=batch, device=device, frame_stack=frame_stack,
+                                 threads=threads, on_done=on_done, record=record)
+    return out
+
+
+def _act(actor: Actor, pixels: torch.Tensor, steps: torch.Tensor | None, record: bool,
+         dev: torch.device) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    if record:
+        actions, outputs = actor.act_values(pixels)
+        return actions.to(dev), outputs
+    if actor.needs_steps:
+        assert steps is not None
+        return actor.act_steps(pixels, steps).to(dev), {}
+    return actor.act_pixels(pixels).to(dev), {}
+
+
+def _act_each(actors: Sequence[Actor], pixels: torch.Tensor, steps: torch.Tensor | None, owner: torch.Tensor,
+              records: Sequence[bool], gives_risk: list[bool],
+              dev: torch.device) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Each actor on its own envs' stacks (``owner``: the actor of each row); marks in
+    ``gives_risk`` the actors whose outputs hold a risk."""
+    actions = torch.full((len(pixels),), IDLE, dtype=torch.long, device=dev)
+    outputs: dict[str, torch.Tensor] = {}
+    for k, actor in enumerate(actors):
+        sel = torch.nonzero(owner == k).flatten()
+        if len(sel) == 0:
+            continue
+        act, out = _act(actor, pixels[sel], None if steps is None else steps[sel], records[k], dev)
+        actions[sel] = act
+        gives_risk[k] = gives_risk[k] or "risk" in out
+        for key, v in out.items():
+            if key not in outputs:
+                outputs[key] = torch.zeros((len(pixels), *v.shape[1:]), dtype=v.dtype, device=v.device)
+            outputs[key][sel.to(v.device)] = v
+    return actions, outputs
+
+
+def _collect(lane: _Lane, ids: list[int], out: StepOut, results: Sequence[JobResult],
+             records: Sequence[bool], gives_risk: Sequence[bool]) -> int:
+    """The episodes that just ended in ``lane``'s envs ``ids`` into their actors' results;
+    returns how many."""
+    owners = lane.owner[ids].tolist()
+    finished = lane.finish(ids, out)
+    traces = lane.traces(ids, [r.collided for r in finished], gives_risk) if any(records) else []
+    by_id = dict(zip(ids, traces, strict=True)) if traces else {}
+    for i, k, rec in zip(ids, owners, finished, strict=True):
+        results[k].records.append(rec)
+        if records[k] and i in by_id:
+            results[k].traces.append(by_id[i])
+    return len(finished)
+
+
+def run_actors_on_engine(actors: Sequence[Actor], jobs: Sequence[Job], *, batch: int | None = None,
+                         device: torch.device | str = "cpu", frame_stack: int = 4, threads: int = 1,
+                         on_done: Callable[[int], object] | None = None,
+                         record: bool = False) -> list[JobResult]:
+    """Run the jobs' episodes for each of ``actors`` (e.g. K checkpoints) on one batched engine
+    per job; each actor's records (and traces) in the order they finish, what
+    :func:`run_jobs_on_engine` gives it alone. Arguments as there; ``batch`` counts envs per
+    job and actor, ``record`` applies to the ``gives_values`` actors."""
+    for actor in actors:
+        if not actor.tensor_policy:
+            raise TypeError(f"{type(actor).__name__} acts through the env; the engine runs "
+                            "tensor_policy actors")
     dev = resolve_device(device)
-    actor.to(dev)
-    record = record and actor.gives_values
-    result = JobResult()
+    for actor in actors:
+        actor.to(dev)
+    records = [record and a.gives_values for a in actors]
+    gives_risk = [False] * len(actors)
+    results = [JobResult() for _ in actors]
     with torch_threads(threads):
-        lanes = [_Lane(job, batch, dev, frame_stack) for job in jobs if job.episodes]
+        lanes = [_Lane(job, batch, dev, frame_stack, len(actors)) for job in jobs if job.episodes]
         while live := [lane for lane in lanes if bool(lane.active.any())]:
             pixels = [lane.engine.observation()[lane.active] for lane in live]
             batch_px = torch.cat(pixels) if len(pixels) > 1 else pixels[0]
-            outputs: dict[str, torch.Tensor] = {}
-            if record:
-                actions, outputs = actor.act_values(batch_px)
-                actions = actions.to(dev)
-            elif actor.needs_steps:
-                steps = [lane.steps[lane.active] for lane in live]
-                actions = actor.act_steps(batch_px, torch.cat(steps)).to(dev)
+            steps = torch.cat([lane.steps[lane.active] for lane in live]) \
+                if any(a.needs_steps for a in actors) else None
+            if len(actors) == 1:
+                actions, outputs = _act(actors[0], batch_px, steps, records[0], dev)
+                gives_risk[0] = "risk" in outputs
             else:
-                actions = actor.act_pixels(batch_px).to(dev)
+                owner = torch.cat([lane.owner[lane.active] for lane in live])
+                actions, outputs = _act_each(actors, batch_px, steps, owner, records, gives_risk, dev)
             offset = 0
             for lane, px in zip(live, pixels, strict=True):
                 part = slice(offset, offset + len(px))
@@ -170,18 +248,15 @@ def run_jobs_on_engine(actor: Actor, jobs: Sequence[Job], *, batch: int | None =
                 chosen[lane.active] = actions[part]
                 offset += len(px)
                 out = lane.engine.step(chosen, active=lane.active)
-                if record:
+                if outputs:
                     lane.keep_step(actions[part], {k: v[part] for k, v in outputs.items()}, out.reward)
                 lane.ret += torch.where(lane.active, out.reward, 0.0)
                 lane.steps += lane.active.long()
                 done = (out.terminated | out.truncated) & lane.active
                 ids = torch.nonzero(done).flatten().tolist()
                 if ids:
-                    records = lane.finish(ids, out)
-                    result.records += records
-                    if record:
-                        result.traces += lane.traces(ids, [r.collided for r in records])
+                    count = _collect(lane, ids, out, results, records, gives_risk)
                     lane.fill(ids)
                     if on_done is not None:
-                        on_done(len(records))
-    return result
+                        on_done(count)
+    return results
