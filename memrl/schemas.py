@@ -574,6 +574,7 @@ class EvalBench:
     engine_batch: int | None = spec(ge=1)
     threads: int = spec(ge=1)
     device: str = MISSING
+    checkpoints: int = spec(ge=0)
 
 
 @dataclass

@@ -137,7 +137,7 @@ def test_bench_eval_times_both_runners_on_the_same_episodes(compose_cfg, tmp_pat
     from memrl.bench import bench
 
     cfg = compose_cfg("bench", ["benchmarks=[eval]", "eval.episodes=3", "eval.duration=20",
-                                "eval.idle_bias=[0,40]"])
+                                "eval.idle_bias=[0,40]", "eval.checkpoints=2"])
     res = bench(cfg, tmp_path)["eval"]
     assert res["episodes"] == 6 and res["threads"] == 1 and res["device"] == "cpu"
     for name in ("fresh_qnet", "fresh_qnet_idle_bias_40"):
@@ -149,6 +149,9 @@ def test_bench_eval_times_both_runners_on_the_same_episodes(compose_cfg, tmp_pat
         rec = row["engine_runner_recorded"]  # the same episodes, each step's Q-values kept
         assert row["recorded_same_records"] is True and rec["traces"] == 6 and rec["summarize_s"] >= 0
         assert row["record_cost"] == pytest.approx(rec["wall_s"] / row["engine_runner"]["wall_s"])
+        k = row["k_checkpoints"]  # 2 networks alone, then together: the same records
+        assert k["k"] == 2 and k["same_records"] is True and k["env_steps"] >= 2 * 6
+        assert k["speedup"] == pytest.approx(k["alone_s"] / k["together_s"])
 
 
 def test_recording_and_the_deploy_baseline_drive_the_greedy_policy_as_the_evaluation_does():

@@ -14,6 +14,11 @@ run drives it: with ``record`` (each step's Q-values, actions and rewards kept) 
 crash-sight summary made from them (:func:`memrl.evaluation.crash_sight.summarize`, timed in
 ``summarize_s`` and counted in its ``wall_s``); ``record_cost`` is its wall time over the plain
 engine runner's.
+
+``checkpoints=K`` (K >= 2) adds, per network bias, K fresh networks evaluated on the engine one
+after the other (``alone``) and all K on one engine per lane
+(:func:`~memrl.evaluation.engine_runner.run_actors_on_engine`, ``together``), recorded as a
+trained run's evaluation is; ``same_records`` checks each network's records agree.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import torch
 from memrl.envs.batched import resolve_device
 from memrl.envs.vehicles import IDLE
 from memrl.evaluation.crash_sight import summarize
-from memrl.evaluation.engine_runner import torch_threads
+from memrl.evaluation.engine_runner import run_actors_on_engine, torch_threads
 from memrl.evaluation.policies import GreedyActor
 from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.runner import Job, run_jobs
@@ -127,9 +132,29 @@ def _one(net: QNetwork, jobs: list[Job], gym_batch: int, engine_batch: int | Non
             "survived": sum(r.survived for r in ours), "goal": sum(r.goal for r in ours)}
 
 
+def _k_checkpoints(k: int, net_seed: int, bias: float, jobs: list[Job], device: torch.device,
+                   threads: int) -> dict[str, Any]:
+    """K networks evaluated one after the other, then together on one engine per lane."""
+    actors = [GreedyActor(fresh_qnet(net_seed + i, bias), gamma=0.95) for i in range(k)]
+    key = lambda r: (r.initial_lane, r.episode)  # noqa: E731
+    with torch_threads(threads):
+        start = time.perf_counter()
+        alone = [run_actors_on_engine([a], jobs, device=device, threads=threads, record=True)[0]
+                 for a in actors]
+        mid = time.perf_counter()
+        together = run_actors_on_engine(actors, jobs, device=device, threads=threads, record=True)
+        end = time.perf_counter()
+    same = all(sorted(a.records, key=key) == sorted(t.records, key=key)
+               for a, t in zip(alone, together, strict=True))
+    steps = sum(r.steps for res in together for r in res.records)
+    return {"k": k, "alone_s": mid - start, "together_s": end - mid, "speedup": (mid - start) / (end - mid),
+            "env_steps": steps, "together_env_steps_per_s": steps / (end - mid), "same_records": same}
+
+
 def run(episodes: int = 100, duration: int = 300, vehicles_count: Sequence[int] = (0, 5), seed: int = 0,
         net_seed: int = 0, idle_bias: Sequence[float] = (0.0,), gym_batch: int = 8,
-        engine_batch: int | None = None, threads: int = 1, device: str = "cpu") -> dict[str, Any]:
+        engine_batch: int | None = None, threads: int = 1, device: str = "cpu",
+        checkpoints: int = 0) -> dict[str, Any]:
     """Wall times, episodes/s and their ratio for each network (one per ``idle_bias``)."""
     dev = resolve_device(device)
     protocol = ProtocolConfig(episodes=episodes, seed=seed, vehicles_count=list(vehicles_count),
@@ -145,4 +170,6 @@ def run(episodes: int = 100, duration: int = 300, vehicles_count: Sequence[int] 
     for bias in idle_bias:
         name = "fresh_qnet" if bias == 0 else f"fresh_qnet_idle_bias_{bias:g}"
         res[name] = _one(fresh_qnet(net_seed, bias), jobs, gym_batch, engine_batch, dev, threads)
+        if checkpoints >= 2:
+            res[name]["k_checkpoints"] = _k_checkpoints(checkpoints, net_seed, bias, jobs, dev, threads)
     return res
