@@ -249,8 +249,10 @@ def study(cfg: DictConfig) -> StudyResult:
 
     out_dir = folder / suffixed("test", tag) if tag else folder
     evals = ev.Evaluations()
-    for cell in finished:
-        evaluate(cell, evals)
+    ev.evaluate_runs([c.run_dir for c in finished], settings, evals)  # those left to make: together
+    if s.stage1:
+        ev.evaluate_stage1s([(c.run_dir, folder / "stage1" / suffixed(c.name, tag)) for c in finished
+                             if by_label(c.mode).pretrains], settings, evals)
     baselines = [folder / "baselines" / suffixed(str(b), tag) for b in s.baselines]
     for name, place in zip(s.baselines, baselines, strict=True):
         ev.evaluate_baseline(str(name), grid[0].cfg.env, place, settings, evals)  # type: ignore[union-attr]

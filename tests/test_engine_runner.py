@@ -224,3 +224,36 @@ def test_k_actors_on_one_engine_get_the_records_each_gets_alone():
     small = engine_runner.run_actors_on_engine(actors, jobs, batch=2)
     for a, t in zip(alone, small, strict=True):
         assert sorted(t.records, key=key) == sorted(a.records, key=key) and not t.traces
+
+
+def test_evaluating_k_candidates_together_writes_the_folders_each_writes_alone(tmp_path):
+    """``evaluate_candidates``: three greedy networks on one engine per lane give each the
+    eval.json (scores, records, crash-sight tables) and episodes.csv of its own evaluation;
+    a candidate whose env differs is evaluated on its own."""
+    import json
+
+    from memrl.evaluation.policies import Candidate
+    from memrl.evaluation.session import evaluate_candidate, evaluate_candidates
+
+    protocol = ProtocolConfig(episodes=4, duration=50)
+    env = {"vehicles_count": [0, 5]}
+
+    def cands(where, envs=(env, env, env)):
+        return [Candidate(f"n{i}", GreedyActor(qnet(*net), gamma=0.95), env=dict(e), out_dir=where / f"n{i}")
+                for i, (net, e) in enumerate(zip(NETS[:3], envs, strict=True))]
+
+    alone = [evaluate_candidate(c, protocol) for c in cands(tmp_path / "alone")]
+    made = evaluate_candidates(cands(tmp_path / "together"), protocol)
+    volatile = ("wall_s", "batch", "together")  # the gym path's lockstep batch; the K that shared the engine
+
+    def doc(folder):
+        return {k: v for k, v in json.loads((folder / "eval.json").read_text()).items() if k not in volatile}
+
+    for a, t in zip(alone, made, strict=True):
+        assert doc(t.path) == doc(a.path) and doc(a.path)["crash_sight"] is not None
+        assert (t.path / "episodes.csv").read_text() == (a.path / "episodes.csv").read_text()
+        assert json.loads((t.path / "eval.json").read_text())["together"] == 3
+    mixed = cands(tmp_path / "mixed", (env, env, {**env, "bev": {"path_time": 0.0}}))  # other frames
+    from memrl.evaluation.session import _plan, together
+
+    assert not together(mixed, [_plan(c, protocol, None, None, None) for c in mixed])

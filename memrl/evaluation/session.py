@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +14,7 @@ from omegaconf import DictConfig
 from memrl.evaluation.crash_sight import summarize
 from memrl.evaluation.jobs import JobResult
 from memrl.evaluation.policies import Candidate
-from memrl.evaluation.protocol import ProtocolConfig, protocol_env, scenario_seeds
+from memrl.evaluation.protocol import INITIAL_LANES, ProtocolConfig, protocol_env, scenario_seeds
 from memrl.evaluation.results import EvalResult, write_result
 from memrl.evaluation.runner import Job, run_jobs
 from memrl.evaluation.sight_tables import evaluation_markdown
@@ -54,6 +55,34 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
         Interrupted: a signal before any episode finished (nothing written; the command's
             line says so and names the command again).
     """
+    plan = _plan(cand, protocol, env_cfg, out_dir, resume)
+    start = time.perf_counter()
+    try:
+        with SignalGuard():
+            res = run_jobs(cand.actor, [j for j in plan.jobs if j.episodes], workers=workers, batch=batch,
+                           progress=progress, desc=f"evaluate {cand.name}", record=plan.record)
+    except (KeyboardInterrupt, Interrupted) as err:  # between jobs, or in worker processes
+        res = JobResult(stopped_early=True, interrupted=interrupted_by(err))
+    finally:
+        cand.actor.close()
+    return _write(cand, protocol, plan, res, time.perf_counter() - start, resume,
+                  {"workers": workers, "batch": batch})
+
+
+@dataclass
+class _Plan:
+    """What one candidate's evaluation drives: its folder, scenes, jobs and whether it records."""
+
+    where: Path
+    seeds: list[int]
+    jobs: list[Job]
+    total: int
+    record: bool
+    gamma: float | None
+
+
+def _plan(cand: Candidate, protocol: ProtocolConfig, env_cfg: Mapping[str, Any] | DictConfig | None,
+          out_dir: Path | None, resume: EvalResult | None) -> _Plan:
     where = resume.path if resume is not None else (cand.out_dir or out_dir)
     if where is None:
         raise ValueError(f"evaluate {cand.name}: no output folder")
@@ -67,18 +96,15 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
     if hasattr(cand.actor, "plan"):
         cand.actor.plan(total, done=len(done))
     gamma = getattr(cand.actor, "gamma", None)
-    record = cand.actor.gives_values and gamma is not None
-    start = time.perf_counter()
-    try:
-        with SignalGuard():
-            res = run_jobs(cand.actor, [j for j in jobs if j.episodes], workers=workers, batch=batch,
-                           progress=progress, desc=f"evaluate {cand.name}", record=record)
-    except (KeyboardInterrupt, Interrupted) as err:  # between jobs, or in worker processes
-        res = JobResult(stopped_early=True, interrupted=interrupted_by(err))
-    finally:
-        cand.actor.close()
+    return _Plan(Path(where), list(seeds), jobs, total, cand.actor.gives_values and gamma is not None, gamma)
+
+
+def _write(cand: Candidate, protocol: ProtocolConfig, plan: _Plan, res: JobResult, seconds: float,
+           resume: EvalResult | None, extra: dict[str, Any]) -> EvalResult:
+    """Write the evaluation folder of ``res`` (the episodes driven now, after ``resume``'s)."""
+    where, total, gamma = plan.where, plan.total, plan.gamma
     stop = res.interrupted
-    wall = time.perf_counter() - start + (resume.wall_s if resume is not None else 0.0)
+    wall = seconds + (resume.wall_s if resume is not None else 0.0)
     records = sorted([*(resume.records() if resume is not None else []), *res.records],
                      key=lambda r: (protocol.initial_lanes.index(r.initial_lane), r.episode))
     if not res.records and stop is not None:  # a signal: the command's one line, with the command again
@@ -90,12 +116,12 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
     stopped = res.stopped_early or len(records) < total
     gamma_risk = getattr(getattr(cand.actor, "net", None), "gamma_risk", None)  # a crash-risk head's
     sight = summarize(res.traces, float(gamma), protocol.duration, gamma_risk) \
-        if gamma is not None and record and res.traces else None
-    result = write_result(Path(where), cand.name, records, protocol, seeds, cand.meta,
-                          stopped_early=stopped, wall_s=wall, env=jobs[0].env,
-                          extra={"workers": workers, "batch": batch, "episodes_planned": total,
+        if gamma is not None and plan.record and res.traces else None
+    result = write_result(where, cand.name, records, protocol, plan.seeds, cand.meta,
+                          stopped_early=stopped, wall_s=wall, env=plan.jobs[0].env,
+                          extra={**extra, "episodes_planned": total,
                                  "steps": sum(r.steps for r in records)}, crash_sight=sight)
-    (Path(where) / EVAL_MD).write_text(evaluation_markdown(result))
+    (where / EVAL_MD).write_text(evaluation_markdown(result))
     steps = sum(r.steps for r in res.records)
     log.info("%s (%s): %d episodes, %d steps in %.1f s (%.0f steps/s) -> %s", cand.name,
              result.unit, len(res.records), steps, wall, steps / max(wall, 1e-9), where)
@@ -104,6 +130,56 @@ def evaluate_candidate(cand: Candidate, protocol: ProtocolConfig, *,
         raise Stopped.by(f"{how_stopped(stop)} after {len(records)} of {total} episodes, saved in {where}; "
                          f"go on with: {resume_command(cand, where)}", stop)
     return result
+
+
+def together(cands: Sequence[Candidate], plans: Sequence[_Plan]) -> bool:
+    """Whether the candidates can share one engine: at least two tensor-policy actors, the same
+    jobs (env configs, lanes, scenes), which the engine runs."""
+    from memrl.evaluation.engine_runner import engine_can_run
+
+    first = plans[0].jobs
+    same = all([(j.env, j.initial_lane, j.episodes) for j in p.jobs] ==
+               [(j.env, j.initial_lane, j.episodes) for j in first] for p in plans)
+    return len(cands) > 1 and same and all(c.actor.tensor_policy for c in cands) and \
+        all(engine_can_run(j) for j in first)
+
+
+def evaluate_candidates(cands: Sequence[Candidate], protocol: ProtocolConfig, *,
+                        env_cfg: Mapping[str, Any] | DictConfig | None = None, workers: int = 1,
+                        batch: int = 8, progress: bool = False) -> list[EvalResult]:
+    """:func:`evaluate_candidate` for each of ``cands``; where they can share it
+    (:func:`together`: e.g. K checkpoints of one configuration), all on one batched engine per
+    lane (:func:`~memrl.evaluation.engine_runner.run_actors_on_engine`), each folder what its own
+    evaluation writes (``eval.json``'s ``extra.together`` counts the candidates driven with it,
+    its ``wall_s`` is theirs together). A signal before they finish writes nothing."""
+    from memrl.evaluation.engine_runner import run_actors_on_engine
+    from memrl.progress import progress_bar
+
+    plans = [_plan(c, protocol, env_cfg, None, None) for c in cands]
+    if not together(cands, plans):
+        return [evaluate_candidate(c, protocol, env_cfg=env_cfg, workers=workers, batch=batch,
+                                   progress=progress) for c in cands]
+    jobs = [j for j in plans[0].jobs if j.episodes]
+    bar = progress_bar(progress, total=len(cands) * sum(len(j.episodes) for j in jobs),
+                       desc=f"evaluate {len(cands)} together", unit="ep")
+    start = time.perf_counter()
+    try:
+        with SignalGuard():
+            results = run_actors_on_engine([c.actor for c in cands], jobs, threads=max(1, workers),
+                                           on_done=bar.update, record=any(p.record for p in plans))
+    except (KeyboardInterrupt, Interrupted) as err:
+        raise interrupted_by(err) from None
+    finally:
+        bar.close()
+        for c in cands:
+            c.actor.close()
+    seconds = time.perf_counter() - start
+    order = {lane: i for i, lane in enumerate(INITIAL_LANES)}
+    for r in results:  # as run_jobs orders them: the crash-sight sums run in this order
+        r.records.sort(key=lambda x: (order[x.initial_lane], x.episode))
+        r.traces.sort(key=lambda x: (order[x.initial_lane], x.episode))
+    return [_write(c, protocol, p, r, seconds, None, {"workers": workers, "together": len(cands)})
+            for c, p, r in zip(cands, plans, results, strict=True)]
 
 
 def resume_command(cand: Candidate, where: Path | str) -> str:

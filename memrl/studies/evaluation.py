@@ -101,6 +101,40 @@ def evaluate_run(run: Path, settings: EvalSettings, out: Evaluations) -> None:
     out.runs.append(_evaluate(cand, settings, out, run / "checkpoints" / "final.pt"))
 
 
+def evaluate_runs(runs: list[Path], settings: EvalSettings, out: Evaluations) -> None:
+    """:func:`evaluate_run` for each of ``runs`` (into ``out.runs`` in their order); the ones to
+    (re)make that can share it on one batched engine per lane
+    (:func:`memrl.evaluation.session.evaluate_candidates`: the same env config, e.g. seeds of one
+    configuration), together."""
+    from memrl.evaluation.policies import CheckpointSource
+    from memrl.evaluation.session import evaluate_candidates
+
+    found: dict[Path, EvalResult] = {}
+    todo = []
+    for run in runs:
+        subdir = eval_folder(run, settings).name
+        [cand] = CheckpointSource(str(run), subdir=subdir).candidates()
+        cand.meta["policy_config"] = {"_target_": "memrl.evaluation.policies.CheckpointSource",
+                                      "run": str(run), "name": None, "subdir": subdir}
+        assert cand.out_dir is not None
+        reuse = reusable(cand.out_dir, settings.protocol, run / "checkpoints" / "final.pt")
+        if reuse is not None:
+            cand.actor.close()
+            out.reused.append(str(cand.out_dir))
+            found[run] = reuse
+        else:
+            todo.append((run, cand))
+    if todo:
+        log.info("evaluating %s -> %s", ", ".join(c.name for _, c in todo),
+                 ", ".join(str(c.out_dir) for _, c in todo))
+        made = evaluate_candidates([c for _, c in todo], settings.protocol, workers=settings.workers,
+                                   batch=settings.batch, progress=settings.progress)
+        for (run, cand), result in zip(todo, made, strict=True):
+            out.made.append(str(cand.out_dir))
+            found[run] = read_result(result.path)  # as a later call reads it (eval.json rounds the wall time)
+    out.runs += [found[run] for run in runs]
+
+
 def evaluate_stage1(run: Path, folder: Path, settings: EvalSettings, out: Evaluations) -> None:
     """Mode B's stage-1 weights (``checkpoints/stage1.pt``) into ``folder``; skipped when the
     run has none."""
@@ -119,6 +153,12 @@ def evaluate_stage1(run: Path, folder: Path, settings: EvalSettings, out: Evalua
                      meta={"kind": "stage1", "run": str(run), "mode": final.meta["mode"],
                            "train_seed": cfg.get("seed"), "unit": f"seed {cfg.get('seed')}"})
     out.stage1.append(_evaluate(cand, settings, out, weights))
+
+
+def evaluate_stage1s(pairs: list[tuple[Path, Path]], settings: EvalSettings, out: Evaluations) -> None:
+    """:func:`evaluate_stage1` for each (run, folder)."""
+    for run, folder in pairs:
+        evaluate_stage1(run, folder, settings, out)
 
 
 def evaluate_baseline(name: str, env: DictConfig, folder: Path, settings: EvalSettings,
