@@ -143,7 +143,10 @@ ONE_RUN_LOGGERS = {"WandbLogger": ("wandb", "W&B"), "MLFlowLogger": ("mlflow", "
 
 def group_refusal(cfg: DictConfig) -> str | None:
     """Why ``cfg``'s runs cannot share a process (None: they can)."""
-    target = str((cfg.get("logger") or {}).get("_target_", "")).rsplit(".", 1)[-1]
+    logger = cfg.get("logger")
+    if not logger or "_target_" not in logger:
+        return None
+    target = str(logger["_target_"]).rsplit(".", 1)[-1]
     if target in ONE_RUN_LOGGERS:
         group, backend = ONE_RUN_LOGGERS[target]
         return (f"logger={group} keeps one active run per process ({backend}); train these seeds in "
