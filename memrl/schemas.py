@@ -533,6 +533,7 @@ class GroupBench:
     frames: int = spec(ge=1)
     rounds: int = spec(ge=1)
     overrides: list[str] = MISSING
+    one_process_threads: int = spec(ge=0)
 
 
 @dataclass

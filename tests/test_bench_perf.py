@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import os
 
 import pytest
 import torch
@@ -308,3 +309,4 @@ def test_bench_group_times_the_same_runs_in_one_process_and_in_k(compose_cfg, tm
     assert one[0]["frames"] == many[0]["frames"] >= 2 * 60 and one[0]["updates"] == many[0]["updates"] > 0
     ratio = one[0]["env_steps_per_s"] / many[0]["env_steps_per_s"]
     assert res["one_process_over_processes"] == round(ratio, 3)
+    assert res["one_process_threads"] == (os.cpu_count() or 1)  # 0: one per CPU, as a process alone

@@ -30,18 +30,19 @@ def _summaries(folders: list[Path]) -> list[dict[str, Any]]:
     return [json.loads((f / "summary.json").read_text()) for f in folders]
 
 
-def _arm(name: str, k: int, frames: int, overrides: list[str], root: Path) -> dict[str, Any]:
+def _arm(name: str, k: int, frames: int, overrides: list[str], root: Path, threads: int) -> dict[str, Any]:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.PIPE}
     t0 = time.perf_counter()
     if name == "one_process":
         out = root / "group"
-        procs = [subprocess.Popen(_cmd(overrides, frames, out, list(range(k))), env=env,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)]
+        procs = [subprocess.Popen(_cmd([*overrides, f"agent.threads={threads}"], frames, out, list(range(k))),
+                                  **quiet)]  # type: ignore[call-overload]
         folders = [out / f"s{s}" for s in range(k)]
     else:
         folders = [root / f"single_s{s}" for s in range(k)]
-        procs = [subprocess.Popen(_cmd(overrides, frames, f, [s]), env=env, stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.PIPE) for s, f in enumerate(folders)]
+        procs = [subprocess.Popen(_cmd([*overrides, "agent.threads=1"], frames, f, [s]),
+                                  **quiet) for s, f in enumerate(folders)]  # type: ignore[call-overload]
     errors = [p.communicate()[1] for p in procs]
     wall = time.perf_counter() - t0
     for p, err in zip(procs, errors, strict=True):
@@ -54,16 +55,19 @@ def _arm(name: str, k: int, frames: int, overrides: list[str], root: Path) -> di
             "in_run_env_steps_per_s": round(total / max(float(d["wall_s"]) for d in done), 2)}
 
 
-def run(seeds: int, frames: int, rounds: int, overrides: list[str]) -> dict[str, Any]:
-    """``seeds`` runs of ``frames`` env steps each, in one process and in ``seeds`` processes."""
+def run(seeds: int, frames: int, rounds: int, overrides: list[str],
+        one_process_threads: int) -> dict[str, Any]:
+    """``seeds`` runs of ``frames`` env steps each, in one process (``one_process_threads`` torch
+    threads, 0: one per CPU) and in ``seeds`` processes (one thread each)."""
+    threads = one_process_threads or os.cpu_count() or 1
     arms: dict[str, list[dict[str, Any]]] = {"one_process": [], "processes": []}
     order = ["one_process", "processes"]
     for r in range(rounds):
         for name in order if r % 2 == 0 else order[::-1]:
             with tempfile.TemporaryDirectory(prefix="memrl_bench_group_") as tmp:
-                arms[name].append(_arm(name, seeds, frames, list(overrides), Path(tmp)))
+                arms[name].append(_arm(name, seeds, frames, list(overrides), Path(tmp), threads))
     best = {n: max(rows, key=lambda row: row["env_steps_per_s"]) for n, rows in arms.items()}
     return {"seeds": seeds, "frames_per_run": frames, "overrides": list(overrides),
-            "cpu_count": os.cpu_count(),
+            "cpu_count": os.cpu_count(), "one_process_threads": threads,
             "rounds": arms, "one_process_over_processes": round(
                 best["one_process"]["env_steps_per_s"] / best["processes"]["env_steps_per_s"], 3)}
