@@ -243,7 +243,7 @@ def test_evaluating_k_candidates_together_writes_the_folders_each_writes_alone(t
                 for i, (net, e) in enumerate(zip(NETS[:3], envs, strict=True))]
 
     alone = [evaluate_candidate(c, protocol) for c in cands(tmp_path / "alone")]
-    made = evaluate_candidates(cands(tmp_path / "together"), protocol)
+    made = evaluate_candidates(cands(tmp_path / "together"), protocol, share=True)
     volatile = ("wall_s", "batch", "together")  # the gym path's lockstep batch; the K that shared the engine
 
     def doc(folder):
@@ -253,6 +253,8 @@ def test_evaluating_k_candidates_together_writes_the_folders_each_writes_alone(t
         assert doc(t.path) == doc(a.path) and doc(a.path)["crash_sight"] is not None
         assert (t.path / "episodes.csv").read_text() == (a.path / "episodes.csv").read_text()
         assert json.loads((t.path / "eval.json").read_text())["together"] == 3
+    for d in evaluate_candidates(cands(tmp_path / "default"), protocol):  # share off: each alone
+        assert "together" not in json.loads((d.path / "eval.json").read_text())
     mixed = cands(tmp_path / "mixed", (env, env, {**env, "bev": {"path_time": 0.0}}))  # other frames
     from memrl.evaluation.session import _plan, together
 

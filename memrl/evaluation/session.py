@@ -146,17 +146,22 @@ def together(cands: Sequence[Candidate], plans: Sequence[_Plan]) -> bool:
 
 def evaluate_candidates(cands: Sequence[Candidate], protocol: ProtocolConfig, *,
                         env_cfg: Mapping[str, Any] | DictConfig | None = None, workers: int = 1,
-                        batch: int = 8, progress: bool = False) -> list[EvalResult]:
-    """:func:`evaluate_candidate` for each of ``cands``; where they can share it
+                        batch: int = 8, progress: bool = False, share: bool = False) -> list[EvalResult]:
+    """:func:`evaluate_candidate` for each of ``cands``; with ``share``, where they can share it
     (:func:`together`: e.g. K checkpoints of one configuration), all on one batched engine per
     lane (:func:`~memrl.evaluation.engine_runner.run_actors_on_engine`), each folder what its own
     evaluation writes (``eval.json``'s ``extra.together`` counts the candidates driven with it,
-    its ``wall_s`` is theirs together). A signal before they finish writes nothing."""
+    its ``wall_s`` is theirs together). A signal before they finish writes nothing.
+
+    ``share`` is off by default: on the CPU engine (where every evaluation runs today) five
+    networks on one engine took 1.05-1.18x the time of one after the other
+    (``python -m memrl.bench eval eval.checkpoints=5``, docs/performance.md); the engine's own
+    step is a small part of an evaluation there, and its render slows with 5x the envs."""
     from memrl.evaluation.engine_runner import run_actors_on_engine
     from memrl.progress import progress_bar
 
     plans = [_plan(c, protocol, env_cfg, None, None) for c in cands]
-    if not together(cands, plans):
+    if not (share and together(cands, plans)):
         return [evaluate_candidate(c, protocol, env_cfg=env_cfg, workers=workers, batch=batch,
                                    progress=progress) for c in cands]
     jobs = [j for j in plans[0].jobs if j.episodes]
