@@ -20,16 +20,20 @@ def updates_rows(run):
     return [{k: v for k, v in row.items() if k not in WALL} for row in csv_rows(run / "updates.csv")]
 
 
+def assert_same_run(a, b, label) -> None:
+    """Run folder ``b`` holds run ``a``'s episodes, update rows and final weights."""
+    rows = csv_rows(a / "episodes.csv")
+    assert len(rows) > 0 and rows == csv_rows(b / "episodes.csv"), label
+    assert updates_rows(a) == updates_rows(b), label
+    wa = torch.load(a / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    wb = torch.load(b / "checkpoints" / "final.pt", weights_only=False)["qnet"]
+    assert all(torch.equal(wa[k], wb[k]) for k in wa), label
+
+
 def assert_same_runs(single, group):
     """Each seed's group run folder holds its single run's episodes, update rows and final weights."""
     for seed in SEEDS:
-        a, b = single / f"s{seed}", group / f"s{seed}"
-        rows = csv_rows(a / "episodes.csv")
-        assert len(rows) > 0 and rows == csv_rows(b / "episodes.csv"), seed
-        assert updates_rows(a) == updates_rows(b), seed
-        wa = torch.load(a / "checkpoints" / "final.pt", weights_only=False)["qnet"]
-        wb = torch.load(b / "checkpoints" / "final.pt", weights_only=False)["qnet"]
-        assert all(torch.equal(wa[k], wb[k]) for k in wa), seed
+        assert_same_run(single / f"s{seed}", group / f"s{seed}", seed)
     episodes = [csv_rows(single / f"s{s}" / "episodes.csv") for s in SEEDS]
     assert all(episodes[i] != episodes[j] for i in range(len(SEEDS)) for j in range(i))  # the seeds differ
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 from omegaconf import OmegaConf
 
-from tests.helpers import TINY, Killed, csv_rows
-from tests.test_seed_group import updates_rows
+from tests.helpers import TINY, Killed
+from tests.test_seed_group import assert_same_run
 
 SEEDS = (0, 1, 2)
 
@@ -41,17 +41,9 @@ def test_process_groups_hold_consecutive_seeds_of_one_configuration(tmp_path):
 
 
 def assert_single_runs(runs, single):
-    import torch
-
     for seed in SEEDS:
         name = f"Default_constant_s{seed}"
-        a, b = single / name, runs / name
-        rows = csv_rows(a / "episodes.csv")
-        assert len(rows) > 0 and rows == csv_rows(b / "episodes.csv"), seed
-        assert updates_rows(a) == updates_rows(b), seed
-        wa = torch.load(a / "checkpoints" / "final.pt", weights_only=False)["qnet"]
-        wb = torch.load(b / "checkpoints" / "final.pt", weights_only=False)["qnet"]
-        assert all(torch.equal(wa[k], wb[k]) for k in wa), seed
+        assert_same_run(single / name, runs / name, seed)
 
 
 def test_the_study_trains_k_seeds_per_process_and_resumes_a_killed_group(compose_cfg, tmp_path, monkeypatch):
