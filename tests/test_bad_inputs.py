@@ -198,6 +198,7 @@ ROWS = [
     ("bench", ["pool.networks=0"], "pool.networks"),
     ("bench", ["seeds.seeds=[0]"], "seeds.seeds"),
     ("bench", ["group.seeds=0"], "group.seeds"),
+    ("bench", ["group.one_process_threads=-1"], "group.one_process_threads"),
     ("bench", ["debug=maybe"], "debug"),
     # preview
     ("preview", ["seed=-1"], "seed"),
