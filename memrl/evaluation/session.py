@@ -156,7 +156,7 @@ def evaluate_candidates(cands: Sequence[Candidate], protocol: ProtocolConfig, *,
     ``share`` is off by default: on the CPU engine (where every evaluation runs today) five
     networks on one engine took 1.05-1.18x the time of one after the other
     (``python -m memrl.bench eval eval.checkpoints=5``, docs/performance.md); the engine's own
-    step is a small part of an evaluation there, and its render slows with 5x the envs."""
+    step is a small part of an evaluation there."""
     from memrl.evaluation.engine_runner import run_actors_on_engine
     from memrl.progress import progress_bar
 
