@@ -372,7 +372,9 @@ class Stage1Config:
     init: Any = None
     """A mode B run folder (or its ``checkpoints/stage1.pt``) whose stage-1 weights this run's
     stage 2 starts from, training no stage 1 of its own: one pretraining shared by stage-2
-    variants (exploration, budgets, ...). Its env config must equal this run's; the run's own
+    variants (exploration, budgets, ...). Its env config must equal this run's; its network this
+    run's, this run's base head (``network=risk``) or, for a categorical head, Table I's of the
+    same trunk (its output layer converted: docs/network.md). The run's own
     ``checkpoints/stage1.pt`` is a copy. Null: train stage 1 here."""
 
     @staticmethod

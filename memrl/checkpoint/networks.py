@@ -144,8 +144,10 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
         with torch.random.fork_rng(devices=[]):  # building draws initial weights
             ours = arch_of(build_qnet(network))
         base = base_arch(network)  # draws in its own forked generator
-        if stored not in (ours, base):
+        scalar = scalar_arch(ours)
+        if stored not in (ours, base, scalar):
             nor = f" nor its base head {describe(base)}" if base is not None else ""
+            nor += f" nor its scalar twin {describe(scalar)}" if scalar is not None else ""
             raise CheckpointError(f"{file}: its network {describe(stored)} is not this run's "
                                   f"{describe(ours)}{nor} (key network)")
     run_cfg = file.parent.parent / "config.yaml"
@@ -178,18 +180,46 @@ def base_arch(network: Any) -> dict[str, Any] | None:
         return arch_of(build_qnet({**task, **node}))
 
 
+def scalar_arch(arch: dict[str, Any]) -> dict[str, Any] | None:
+    """For the architecture of a categorical head (C51, HL-Gauss), Table I's scalar network with
+    the same trunk, whose stage-1 weights :func:`offline_state` converts; None for any other."""
+    from memrl.modules.categorical import CategoricalQNetwork
+
+    with torch.random.fork_rng(devices=[]):
+        net = build_qnet(arch)
+    if not isinstance(net, CategoricalQNetwork):
+        return None
+    return {**TABLE1, **{k: arch[k] for k in TABLE1 if k != "_target_" and k in arch}}
+
+
+def _last_linear(qnet: torch.nn.Module) -> str:
+    """The parameter prefix of a categorical network's output layer (``head.3``)."""
+    last = len(qnet.head) - 1  # type: ignore[arg-type]
+    return f"head.{last}"
+
+
 BASE = ".module.0.module."
 """Where a ``DQNLoss`` state dict's keys name the Q-network's own parameters."""
 
 
-def offline_state(state: dict[str, Any], loss_module: torch.nn.Module) -> dict[str, Any]:
+def offline_state(state: dict[str, Any], loss_module: torch.nn.Module,
+                  qnet: torch.nn.Module | None = None) -> dict[str, Any]:
     """The ``loss_module`` state to load from stage-1 weights ``state`` (:func:`stage1_source`
     has checked them): theirs as stored for the same network; for a network with a critic
     beside a base head of the stored architecture (``network=risk`` from a stage 1 trained
-    without one), the base's online and target weights theirs, the critic's its own."""
+    without one), the base's online and target weights theirs, the critic's its own; for a
+    categorical head ``qnet`` (C51, HL-Gauss) from Table I's scalar network of the same trunk,
+    theirs with the output layer converted (:meth:`CategoricalQNetwork.head_from_scalar`:
+    the same Q-values, online and target)."""
     theirs, ours = state["loss_module"], loss_module.state_dict()
+    support = {k for k in set(ours) - set(theirs) if k.endswith(f"{BASE}support")}
+    if support and _is_categorical(qnet):  # a categorical head's fixed support (from its arch): its own
+        theirs = {**theirs, **{k: ours[k] for k in support}}
     if set(theirs) == set(ours):
-        return theirs
+        differ = [k for k in ours if tuple(ours[k].shape) != tuple(theirs[k].shape)]
+        if not differ:
+            return theirs
+        return _converted(theirs, ours, differ, qnet)
     mapped = dict(ours)
     for key, value in theirs.items():
         head, sep, rest = key.partition(BASE)
@@ -238,3 +268,29 @@ def check_stage1(file: Path) -> dict[str, Any]:
     if "loss_module" not in state:
         raise CheckpointError(f"{file}: not a stage-1 record (no 'loss_module' weights)")
     return state
+
+
+def _is_categorical(qnet: torch.nn.Module | None) -> bool:
+    from memrl.modules.categorical import CategoricalQNetwork
+
+    return isinstance(qnet, CategoricalQNetwork)
+
+
+def _converted(theirs: dict[str, Any], ours: dict[str, Any], differ: list[str],
+               qnet: torch.nn.Module | None) -> dict[str, Any]:
+    """``theirs`` with the scalar output layers ``differ`` (online and target) converted to the
+    categorical head ``qnet``'s; any other difference is refused."""
+    if not _is_categorical(qnet):
+        raise CheckpointError(f"stage-1 weights: {differ[0]} has another shape than this run's network's")
+    last = _last_linear(qnet)
+    out = dict(theirs)
+    for prefix in {k.rsplit(".", 1)[0] for k in differ}:
+        w, b = f"{prefix}.weight", f"{prefix}.bias"
+        if not prefix.endswith(f"{BASE}{last}") or w not in differ or b not in differ:
+            raise CheckpointError(f"stage-1 weights: {differ[0]} has another shape than this run's network's")
+        out[w], out[b] = qnet.head_from_scalar(theirs[w], theirs[b])
+        if tuple(out[w].shape) != tuple(ours[w].shape):
+            raise CheckpointError(f"stage-1 weights: {w} does not convert to this run's {tuple(ours[w].shape)}")
+    log.info("stage-1 weights: the scalar output layer converted to %s's (%d atoms, a Gaussian of "
+             "%.3g around each Q-value)", type(qnet).__name__, qnet.atoms, qnet.conversion_width())
+    return out

@@ -340,7 +340,8 @@ class Trainer:
         """The offline stage done by another run (``mode.stage1.init``): its weights and record,
         then the switch."""
         state = load_weights(file, "stage-1 weights")  # checked again: read once more here
-        self.learner.loss_module.load_state_dict(offline_state(state, self.learner.loss_module))
+        self.learner.loss_module.load_state_dict(
+            offline_state(state, self.learner.loss_module, self.learner.qnet))
         for key, value in state.get("stage1", {}).items():
             setattr(self.offline_progress, key, value)
         p = self.offline_progress

@@ -100,6 +100,26 @@ class CategoricalQNetwork(QNetwork):
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         return self.outputs(pixels)["q"]
 
+    def conversion_width(self) -> float:
+        """Standard deviation [return units] of the Gaussian that :meth:`head_from_scalar` puts
+        around each Q-value: 0.75 support spacings (HL-Gauss's default ratio)."""
+        return 0.75 * (self.v_max - self.v_min) / (self.atoms - 1)
+
+    @torch.no_grad()
+    def head_from_scalar(self, weight: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """This head's last layer ``([A * atoms, H], [A * atoms])`` from a scalar head's
+        ``([A, H], [A])`` (Table I's, Q_a = w_a h + b_a), such that action a's distribution is
+        the Gaussian of :meth:`conversion_width` s around Q_a on the support z, normalised:
+        logit_(a, i) = (z_i Q_a - z_i^2 / 2) / s^2, linear in h (the -Q_a^2 / 2s^2 it omits is
+        the same for every i and cancels in the softmax). Its expected value is Q_a while Q_a
+        lies a few s inside the support: a stage 2 with this head starts from the scalar stage
+        1's values (:func:`memrl.checkpoint.networks.offline_state`)."""
+        z = self.support_values().to(torch.float64)  # [K]
+        s2 = self.conversion_width() ** 2
+        w = weight.to(torch.float64)[:, None, :] * z[None, :, None] / s2  # [A, K, H]
+        b = (bias.to(torch.float64)[:, None] * z[None, :] - 0.5 * z[None, :] ** 2) / s2  # [A, K]
+        return w.reshape(-1, weight.shape[1]).to(weight.dtype), b.reshape(-1).to(bias.dtype)
+
     @classmethod
     def for_task(cls, node: dict[str, Any], env: Any, gamma: float) -> dict[str, Any]:
         """``node`` with a null ``v_min`` / ``v_max`` set from :func:`return_bounds`."""

@@ -50,6 +50,10 @@ class HLGaussQNetwork(CategoricalQNetwork):
         width = (self.v_max - self.v_min) / self.atoms
         return self.v_min + width * (torch.arange(self.atoms, dtype=torch.float32) + 0.5)
 
+    def conversion_width(self) -> float:
+        """``sigma`` bin widths: a converted scalar head's distribution has the targets' shape."""
+        return self.sigma * (self.v_max - self.v_min) / self.atoms
+
     @classmethod
     def td_term(cls, agent: Any) -> HLGaussTerm:
         refuse_advantage_learning(cls, agent)
