@@ -290,7 +290,8 @@ def _converted(theirs: dict[str, Any], ours: dict[str, Any], differ: list[str],
             raise CheckpointError(f"stage-1 weights: {differ[0]} has another shape than this run's network's")
         out[w], out[b] = qnet.head_from_scalar(theirs[w], theirs[b])
         if tuple(out[w].shape) != tuple(ours[w].shape):
-            raise CheckpointError(f"stage-1 weights: {w} does not convert to this run's {tuple(ours[w].shape)}")
+            raise CheckpointError(f"stage-1 weights: {w} does not convert to this run's "
+                                  f"{tuple(ours[w].shape)}")
     log.info("stage-1 weights: the scalar output layer converted to %s's (%d atoms, a Gaussian of "
              "%.3g around each Q-value)", type(qnet).__name__, qnet.atoms, qnet.conversion_width())
     return out
