@@ -280,7 +280,9 @@ def _converted(theirs: dict[str, Any], ours: dict[str, Any], differ: list[str],
                qnet: torch.nn.Module | None) -> dict[str, Any]:
     """``theirs`` with the scalar output layers ``differ`` (online and target) converted to the
     categorical head ``qnet``'s; any other difference is refused."""
-    if not _is_categorical(qnet):
+    from memrl.modules.categorical import CategoricalQNetwork
+
+    if not isinstance(qnet, CategoricalQNetwork):
         raise CheckpointError(f"stage-1 weights: {differ[0]} has another shape than this run's network's")
     last = _last_linear(qnet)
     out = dict(theirs)
