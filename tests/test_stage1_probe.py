@@ -54,7 +54,7 @@ def test_the_probe_reports_the_trainers_first_stage1_updates(compose_cfg, tmp_pa
         lines = capsys.readouterr().out.strip().splitlines()
         assert [int(row.split()[1]) for row in lines] == [0, 3, 6]
         assert lines[0].endswith(f"init {expected}")  # the pool leaves the initial weights alone
-        assert all("greedy actions" in row for row in lines)
+        assert all("greedy actions" in row and "Q(s, a_demo) - return " in row for row in lines)
     default = compose_cfg("train", tiny())
     default.paths.output_dir = str(tmp_path / "default")
     OmegaConf.save(default, tmp_path / "default.yaml", resolve=True)
@@ -71,18 +71,20 @@ def test_the_probe_reads_a_trained_network_on_seeded_demo_states(tmp_path, capsy
     from memrl.checkpoint import save_qnet
     from memrl.data.demos import load_demos, save_demos
     from memrl.modules.qnet import QNetwork
-    from memrl.tools.stage1_probe import dead_indices
+    from memrl.tools.stage1_probe import calibration, calibration_line, dead_indices
 
-    demos = save_demos(make_demos(300), tmp_path / "demos",
-                       {"env_config": {"duration": 30, "vehicles_count": 0}})
+    # 150-step episodes: the steps 100 or more before their time limit have a known return
+    demos = save_demos(make_demos(300, duration=150), tmp_path / "demos",
+                       {"env_config": {"duration": 150, "vehicles_count": 0}})
     torch.manual_seed(3)
     net = QNetwork()
     with torch.no_grad():
         net.features[3].bias[:5] = -1e4  # conv 2: channels 0-4 never active
     run = tmp_path / "run"
     save_qnet(run / "checkpoints" / "final.pt", net, {})
-    OmegaConf.save(OmegaConf.create({"env": {"duration": 30, "vehicles_count": 0, "bev": {"path_time": 0}},
-                                     "mode": {"name": "default"}}), run / "config.yaml")
+    OmegaConf.save(OmegaConf.create({"env": {"duration": 150, "vehicles_count": 0, "bev": {"path_time": 0}},
+                                     "mode": {"name": "default"}, "agent": {"gamma": 0.95}}),
+                   run / "config.yaml")
     td = load_demos(demos)
     pick = torch.randperm(td.shape[0], generator=torch.Generator().manual_seed(0))[:256]
     pixels = td["pixels"][pick]
@@ -94,8 +96,11 @@ def test_the_probe_reads_a_trained_network_on_seeded_demo_states(tmp_path, capsy
     out = capsys.readouterr().out.strip().splitlines()
     head = (f"weights final  dead per ReLU {[len(u) for _, u in dead]}  "
             f"dead channels of the conv layers {[u for c, u in dead if c]}  ")
-    assert len(out) == 1 and out[0].startswith(head)
+    assert len(out) == 2 and out[0].startswith(head)
     assert out[0].endswith(f"greedy actions {greedy}")
+    # the calibration over every demo step whose return is known (tests/test_mc_returns.py)
+    assert out[1] == calibration_line(calibration(net, td, 0.95))
+    assert out[1].startswith("calibration on ")
     assert main([str(run), "weights=final"]) == 2  # a Default run: no prior knowledge of its own
     assert "give demos=" in capsys.readouterr().err
 

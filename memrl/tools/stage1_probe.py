@@ -12,7 +12,9 @@ network's parameters), so two configs can be checked to start alike.
 ``weights=final`` (or ``stage1``) trains nothing: it prints the same measures for the run's trained
 network (or its stage-1 weights) on 256 states drawn with a generator seeded 0 from the run's prior
 knowledge (``demos=PATH``: from that dataset, e.g. for a Default run), with the indices of each
-conv layer's dead channels.
+conv layer's dead channels, and its calibration (Cal-QL's diagnosis): Q(s, a_demo) against the
+demos' Monte-Carlo returns at ``agent.gamma`` (:mod:`memrl.data.mc_returns`) over every demo
+step whose return is known. The probe's rows give the mean Q - return on 256 such steps.
 
 Nothing is written outside a temporary folder. A stage 1 whose units die in its first updates
 keeps one greedy action for every state (docs/training.md, mode B).
@@ -75,6 +77,38 @@ def snapshot(net: nn.Module, pixels: torch.Tensor) -> dict[str, Any]:
             "greedy_actions": int(q.argmax(-1).unique().numel())}
 
 
+@torch.no_grad()
+def calibration(net: nn.Module, td: Any, gamma: float, limit: int | None = None) -> dict[str, Any]:
+    """Q(s, a_demo) against the demos' Monte-Carlo returns (:func:`memrl.data.mc_returns.mc_returns`)
+    over the rows whose return is known (``limit``: that many of them, drawn with a generator
+    seeded 0): the means of both, of Q - G and |Q - G|, the share of rows with Q below G (Cal-QL
+    calls Q calibrated where it is at least the data's return) and their correlation."""
+    from memrl.data.mc_returns import mc_returns
+
+    g, known = mc_returns(td, gamma)
+    rows = torch.nonzero(known).reshape(-1)
+    if limit is not None and len(rows) > limit:
+        pick = torch.randperm(len(rows), generator=torch.Generator().manual_seed(0))[:limit]
+        rows = rows[pick].sort().values
+    if len(rows) == 0:
+        return {"states": 0}
+    q = torch.cat([net(td["pixels"][part]).gather(-1, td["action"][part].reshape(-1, 1).long()).reshape(-1)
+                   for part in rows.split(PROBE_STATES)]).to(torch.float64)
+    g = g[rows]
+    diff = q - g
+    corr = float(torch.corrcoef(torch.stack([q, g]))[0, 1]) if len(rows) > 1 else float("nan")
+    return {"states": len(rows), "q": float(q.mean()), "g": float(g.mean()), "bias": float(diff.mean()),
+            "abs": float(diff.abs().mean()), "below": float((diff < 0).double().mean()), "corr": corr}
+
+
+def calibration_line(cal: dict[str, Any]) -> str:
+    if not cal["states"]:
+        return "calibration: no demo step whose return is known"
+    return (f"calibration on {cal['states']} demo steps whose return is known: Q(s, a_demo) {cal['q']:.2f}, "
+            f"return {cal['g']:.2f}, Q - return {cal['bias']:+.2f} (|.| {cal['abs']:.2f}), Q below the "
+            f"return on {100 * cal['below']:.1f}% of them, correlation {cal['corr']:.3f}")
+
+
 def probe(cfg: Any, updates: int, every: int, out_dir: Path) -> list[dict[str, Any]]:
     """``updates`` stage-1 updates of the trainer of ``cfg`` (a mode B train config, stage 1
     not yet done); rows at update 0 and every ``every`` updates. Returns the rows (the first
@@ -87,17 +121,24 @@ def probe(cfg: Any, updates: int, every: int, out_dir: Path) -> list[dict[str, A
     if not spec.stages[0].offline:
         raise ValueError(f"the probe takes a stage 1 on prior knowledge alone; mode {spec.name} "
                          "starts online")
-    trainer = Trainer(cfg, out_dir, demos=prior_knowledge(cfg))
+    demos = prior_knowledge(cfg)
+    trainer = Trainer(cfg, out_dir, demos=demos)
     net = trainer.learner.qnet
     pixels = torch.cat([trainer.stage.buffer.sample()["pixels"]
                         for _ in range(-(-PROBE_STATES // int(cfg.agent.batch_size)))])[:PROBE_STATES]
-    rows = [{"updates": 0, "loss": None, "init": fingerprint(net), **snapshot(net, pixels)}]
+    gamma = float(cfg.agent.gamma)
+
+    def cal() -> dict[str, Any]:
+        return {"calibration": calibration(net, demos, gamma, limit=PROBE_STATES)}
+
+    rows = [{"updates": 0, "loss": None, "init": fingerprint(net), **snapshot(net, pixels), **cal()}]
     losses: list[float] = []
     for step in range(1, updates + 1):
         losses.append(trainer.learner.update(trainer.stage.buffer.sample()))
         if step % every == 0 or step == updates:
             recent = losses[-every:]
-            rows.append({"updates": step, "loss": sum(recent) / len(recent), **snapshot(net, pixels)})
+            rows.append({"updates": step, "loss": sum(recent) / len(recent), **snapshot(net, pixels),
+                         **cal()})
     return rows
 
 
@@ -120,18 +161,22 @@ def probe_weights(cfg: Any, run: Path, which: str, demos: str | None) -> dict[st
     pixels = td["pixels"][pick]
     net = load_stage1_qnet(run) if which == "stage1" else load_qnet(run)[0]
     convs = [units for conv, units in dead_indices(net, pixels) if conv]
-    return {"weights": which, **snapshot(net, pixels), "dead_conv_channels": convs}
+    return {"weights": which, **snapshot(net, pixels), "dead_conv_channels": convs,
+            "calibration": calibration(net, td, float(cfg.agent.gamma))}
 
 
 def line(row: dict[str, Any]) -> str:
     if "weights" in row:
         return (f"weights {row['weights']}  dead per ReLU {row['dead']}  dead channels of the conv "
                 f"layers {row['dead_conv_channels']}  Q spread over states {row['q_spread']:.4f}  "
-                f"greedy actions {row['greedy_actions']}")
+                f"greedy actions {row['greedy_actions']}\n{calibration_line(row['calibration'])}")
     loss = "-" if row["loss"] is None else f"{row['loss']:.4f}"
     init = f"  init {row['init']}" if "init" in row else ""
+    cal = row["calibration"]
+    bias = f"{cal['bias']:+.2f}" if cal["states"] else "-"
     return (f"updates {row['updates']:>6}  loss {loss:>7}  dead per ReLU {row['dead']}  "
-            f"Q spread over states {row['q_spread']:.4f}  greedy actions {row['greedy_actions']}{init}")
+            f"Q spread over states {row['q_spread']:.4f}  greedy actions {row['greedy_actions']}  "
+            f"Q(s, a_demo) - return {bias}{init}")
 
 
 def parse(argv: list[str]) -> dict[str, Any]:
