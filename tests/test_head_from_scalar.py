@@ -84,7 +84,9 @@ def test_stage_2_with_hl_gauss_starts_from_a_scalar_stage_1(compose_cfg, tmp_pat
 
     plain = compose_cfg("train", tiny("B"))
     train(plain, tmp_path / "plain", demos=demos)
-    overrides = [*tiny("B"), "network=hlgauss", f"mode.stage1.init={tmp_path / 'plain'}"]
+    # float32 convs (auto is bfloat16 on CPUs with native bf16), as the stage 1 read back below
+    overrides = [*tiny("B"), "network=hlgauss", f"mode.stage1.init={tmp_path / 'plain'}",
+                 "agent.precision=float32"]
     cfg = compose_cfg("train", overrides)
     check_train(cfg)  # the scalar twin of the head: accepted
     trainer = Trainer(cfg, tmp_path / "hl", demos)

@@ -142,9 +142,10 @@ def stage1_source(path: str | Path, env_cfg: Any, network: Any | None = None) ->
     if network is not None:
         stored = stored_arch(state)
         with torch.random.fork_rng(devices=[]):  # building draws initial weights
-            ours = arch_of(build_qnet(network))
+            net = build_qnet(network)
+        ours = arch_of(net)
         base = base_arch(network)  # draws in its own forked generator
-        scalar = scalar_arch(ours)
+        scalar = scalar_arch(net)
         if stored not in (ours, base, scalar):
             nor = f" nor its base head {describe(base)}" if base is not None else ""
             nor += f" nor its scalar twin {describe(scalar)}" if scalar is not None else ""
@@ -180,15 +181,12 @@ def base_arch(network: Any) -> dict[str, Any] | None:
         return arch_of(build_qnet({**task, **node}))
 
 
-def scalar_arch(arch: dict[str, Any]) -> dict[str, Any] | None:
-    """For the architecture of a categorical head (C51, HL-Gauss), Table I's scalar network with
+def scalar_arch(net: torch.nn.Module) -> dict[str, Any] | None:
+    """For a categorical head (C51, HL-Gauss), the architecture of Table I's scalar network with
     the same trunk, whose stage-1 weights :func:`offline_state` converts; None for any other."""
-    from memrl.modules.categorical import CategoricalQNetwork
-
-    with torch.random.fork_rng(devices=[]):
-        net = build_qnet(arch)
-    if not isinstance(net, CategoricalQNetwork):
+    if not _is_categorical(net):
         return None
+    arch = arch_of(net)
     return {**TABLE1, **{k: arch[k] for k in TABLE1 if k != "_target_" and k in arch}}
 
 

@@ -7,14 +7,16 @@ Row ``t + 1`` continues row ``t`` when ``t`` is not done and its ``("next", "pix
 or noise steps: content, not position, tells). Along each such chain, ``G_t = r_t + gamma
 G_(t+1)``; at a chain's end the sum stops. A return is *known* where the chain ends in a
 termination (a crash: nothing follows) or at least ``horizon`` steps later (what the cut
-misses weighs at most ``gamma^horizon`` of a return). Hand-written: TorchRL's value estimators
-bootstrap from a value network, and its ``MultiStepTransform`` sums a fixed number of steps.
+misses weighs at most ``gamma^horizon`` of a return). The sums are TorchRL's ``reward2go`` with
+the chains' ends as its episode ends (it drops terms below 1e-7 of a step's reward); what is
+written here is where a chain ends, which TorchRL reads from done flags alone.
 """
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.objectives.value.functional import reward2go
 
 CHUNK = 1024
 """Rows compared at once (two uint8 stacks of 28 KB each per row)."""
@@ -36,16 +38,10 @@ def continues(td: TensorDictBase) -> torch.Tensor:
 def mc_returns(td: TensorDictBase, gamma: float, horizon: int = 100) -> tuple[torch.Tensor, torch.Tensor]:
     """``(G [N] float64, known [N] bool)`` of the rows of ``td`` (module docstring)."""
     n = td.shape[0]
-    reward = td.get(("next", "reward")).reshape(n).to(torch.float64).tolist()
-    terminated = td.get(("next", "terminated")).reshape(n).tolist()
-    link = continues(td).tolist()
-    g, known = [0.0] * n, [False] * n
-    ahead, ends_in_crash, after = 0.0, False, 0  # the next row's return, its chain's end, steps to it
-    for t in range(n - 1, -1, -1):
-        if link[t]:
-            ahead, after = gamma * ahead, after + 1
-        else:
-            ahead, ends_in_crash, after = 0.0, bool(terminated[t]), 0
-        ahead += reward[t]
-        g[t], known[t] = ahead, ends_in_crash or after >= horizon
-    return torch.tensor(g, dtype=torch.float64), torch.tensor(known)
+    end = ~continues(td)  # [N] the last row of its chain
+    chain = torch.cat([end.new_zeros(1), end[:-1]]).long().cumsum(0)  # [N] each row's chain
+    last = torch.nonzero(end).reshape(-1)[chain]  # [N] the last row of each row's chain
+    terminated = td.get(("next", "terminated")).reshape(n)
+    known = terminated[last] | (last - torch.arange(n) >= horizon)
+    reward = td.get(("next", "reward")).reshape(n, 1).to(torch.float64)
+    return reward2go(reward, end.reshape(n, 1), gamma).reshape(n), known

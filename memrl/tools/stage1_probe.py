@@ -77,12 +77,10 @@ def snapshot(net: nn.Module, pixels: torch.Tensor) -> dict[str, Any]:
             "greedy_actions": int(q.argmax(-1).unique().numel())}
 
 
-@torch.no_grad()
-def calibration(net: nn.Module, td: Any, gamma: float, limit: int | None = None) -> dict[str, Any]:
-    """Q(s, a_demo) against the demos' Monte-Carlo returns (:func:`memrl.data.mc_returns.mc_returns`)
-    over the rows whose return is known (``limit``: that many of them, drawn with a generator
-    seeded 0): the means of both, of Q - G and |Q - G|, the share of rows with Q below G (Cal-QL
-    calls Q calibrated where it is at least the data's return) and their correlation."""
+def known_returns(td: Any, gamma: float, limit: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(rows, G)``: the rows of ``td`` whose Monte-Carlo return is known
+    (:func:`memrl.data.mc_returns.mc_returns`) and those returns (``limit``: that many rows,
+    drawn with a generator seeded 0)."""
     from memrl.data.mc_returns import mc_returns
 
     g, known = mc_returns(td, gamma)
@@ -90,11 +88,21 @@ def calibration(net: nn.Module, td: Any, gamma: float, limit: int | None = None)
     if limit is not None and len(rows) > limit:
         pick = torch.randperm(len(rows), generator=torch.Generator().manual_seed(0))[:limit]
         rows = rows[pick].sort().values
+    return rows, g[rows]
+
+
+@torch.no_grad()
+def calibration(net: nn.Module, td: Any, gamma: float, limit: int | None = None,
+                returns: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, Any]:
+    """Q(s, a_demo) against the demos' Monte-Carlo returns over the rows whose return is known
+    (:func:`known_returns`, or ``returns`` computed by it once): the means of both, of Q - G and
+    |Q - G|, the share of rows with Q below G (Cal-QL calls Q calibrated where it is at least the
+    data's return) and their correlation."""
+    rows, g = known_returns(td, gamma, limit) if returns is None else returns
     if len(rows) == 0:
         return {"states": 0}
     q = torch.cat([net(td["pixels"][part]).gather(-1, td["action"][part].reshape(-1, 1).long()).reshape(-1)
                    for part in rows.split(PROBE_STATES)]).to(torch.float64)
-    g = g[rows]
     diff = q - g
     corr = float(torch.corrcoef(torch.stack([q, g]))[0, 1]) if len(rows) > 1 else float("nan")
     return {"states": len(rows), "q": float(q.mean()), "g": float(g.mean()), "bias": float(diff.mean()),
@@ -126,10 +134,10 @@ def probe(cfg: Any, updates: int, every: int, out_dir: Path) -> list[dict[str, A
     net = trainer.learner.qnet
     pixels = torch.cat([trainer.stage.buffer.sample()["pixels"]
                         for _ in range(-(-PROBE_STATES // int(cfg.agent.batch_size)))])[:PROBE_STATES]
-    gamma = float(cfg.agent.gamma)
+    returns = known_returns(demos, float(cfg.agent.gamma), limit=PROBE_STATES)  # the same rows throughout
 
     def cal() -> dict[str, Any]:
-        return {"calibration": calibration(net, demos, gamma, limit=PROBE_STATES)}
+        return {"calibration": calibration(net, demos, float(cfg.agent.gamma), returns=returns)}
 
     rows = [{"updates": 0, "loss": None, "init": fingerprint(net), **snapshot(net, pixels), **cal()}]
     losses: list[float] = []
