@@ -65,6 +65,11 @@ class TrainSchema:
     """Several seeds of this configuration trained in one process, in turn
     (:func:`memrl.train.train_seeds`): run folders ``<output dir>/s<seed>``, each what that seed's
     own run writes (``seed`` is then not used); null: one run at ``seed``."""
+    seeds_engine: str = spec(choices=("own", "shared"))
+    """With ``seeds``: each seed's training envs on an engine of its own (``own``: the seeds take
+    turns), or all seeds' on one batched engine of K x ``env.num_envs`` envs (``shared``: stepped
+    together, :mod:`memrl.envs.shared_engine`; needs ``env.num_envs`` > 1 and no learned cars).
+    The same episodes and weights either way."""
     device: str = MISSING
     """Where the network, loss, optimizer, replay storage and batched envs live: ``auto``
     (CUDA when present), ``cpu``, ``cuda`` or ``cuda:K``."""

@@ -136,6 +136,12 @@ def stop_requested() -> int | None:
     return _state["pending"]
 
 
+def request_stop(signum: int) -> None:
+    """Ask for a stop as the signal ``signum`` would inside :func:`deferred` (the other runs of a
+    group stop at their next checkpoint after one of them raised the stop)."""
+    _state["pending"] = int(signum)
+
+
 def raise_pending() -> None:
     """Raise :class:`Interrupted` for the pending signal (after the caller's checkpoint)."""
     signum = _state["pending"]

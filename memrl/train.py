@@ -6,7 +6,7 @@ import logging
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -134,7 +134,8 @@ def train_seeds(cfg: DictConfig, seeds: Sequence[int], out_dir: Path | None = No
         if cfg.resume:
             c.resume = str(group / f"s{seed}")
         cfgs.append(c)
-    return train_group(cfgs, [group / f"s{seed}" for seed in seeds], demos)
+    return train_group(cfgs, [group / f"s{seed}" for seed in seeds], demos,
+                       shared_engine=str(cfg.seeds_engine) == "shared" and len(cfgs) > 1)
 
 
 ONE_RUN_LOGGERS = {"WandbLogger": ("wandb", "W&B"), "MLFlowLogger": ("mlflow", "MLflow")}
@@ -155,14 +156,16 @@ def group_refusal(cfg: DictConfig) -> str | None:
 
 
 def train_group(cfgs: Sequence[DictConfig], run_dirs: Sequence[Path],
-                demos: TensorDictBase | None = None) -> list[Summary]:
+                demos: TensorDictBase | None = None, shared_engine: bool = False) -> list[Summary]:
     """Train the runs ``cfgs`` (each a single run's config: its own seed, ``resume`` its folder
     or null) into ``run_dirs`` in this process, their turns in order
     (:mod:`memrl.dqn.seed_group`); each run writes what its own process writes. Every config is
-    checked before any folder is made; a run finished earlier at its budget is only reported."""
+    checked before any folder is made; a run finished earlier at its budget is only reported.
+    ``shared_engine``: the runs' training envs on one engine, stepped together
+    (:func:`~memrl.dqn.seed_group.run_lockstep`)."""
     from contextlib import ExitStack
 
-    from memrl.dqn.seed_group import Member, RngState, active_run, run_turns
+    from memrl.dqn.seed_group import Member, RngState, active_run, run_lockstep, run_turns
 
     if len(cfgs) != len(run_dirs):
         raise ValueError(f"{len(cfgs)} configs for {len(run_dirs)} run folders")
@@ -172,12 +175,14 @@ def train_group(cfgs: Sequence[DictConfig], run_dirs: Sequence[Path],
             from memrl.errors import config_error
 
             raise config_error("logger", why)
+    shared = shared_engine_of(cfgs) if shared_engine else None
     outer = RngState.now()
     members, dirs = [], []
     with ExitStack() as stack:
-        for c, run_dir in zip(cfgs, run_dirs, strict=True):
+        for k, (c, run_dir) in enumerate(zip(cfgs, run_dirs, strict=True)):
             with active_run(Path(c.resume) if c.resume else Path(run_dir)):
-                opened = stack.enter_context(opened_run(c, Path(run_dir), demos))
+                opened = stack.enter_context(opened_run(c, Path(run_dir), demos,
+                                                        None if shared is None else shared.slices[k]))
             if isinstance(opened, tuple):
                 members.append(Member(opened[0], run_dir=opened[1]))  # generators as its Trainer left them
                 dirs.append(opened[1])
@@ -185,11 +190,38 @@ def train_group(cfgs: Sequence[DictConfig], run_dirs: Sequence[Path],
                 members.append(Member(None, summary=opened, run_dir=Path(opened.run_dir)))
                 dirs.append(Path(opened.run_dir))
             outer.restore()  # the next run starts from the same outer state, as its own process
-        summaries = deferred_run(lambda: run_turns(members))
+        summaries = deferred_run(
+            lambda: run_turns(members) if shared is None else run_lockstep(members, shared))
     for summary, run_dir in zip(summaries, dirs, strict=True):
         with active_run(run_dir):
             _done(summary, run_dir)
     return summaries
+
+
+def shared_engine_of(cfgs: Sequence[DictConfig]) -> Any:
+    """One engine for the training envs of every run of ``cfgs`` (a slice each,
+    :class:`~memrl.envs.shared_engine.SharedEngine`), or a one-line refusal naming
+    ``seeds_engine``: the runs need the same env config and device, ``env.num_envs`` > 1 and no
+    learned cars."""
+    from memrl.envs.batched import resolve_device
+    from memrl.envs.config import BatchedEnvError
+    from memrl.envs.shared_engine import SharedEngine
+    from memrl.envs.torchrl_env import env_kwargs
+    from memrl.errors import config_error
+
+    first = cfgs[0]
+    if int(first.env.num_envs) < 2:
+        raise config_error("seeds_engine", "shared needs env.num_envs > 1 (one env per seed runs the "
+                           "reference env); use seeds_engine=own")
+    for c in cfgs[1:]:
+        if OmegaConf.to_container(c.env, resolve=True) != OmegaConf.to_container(first.env, resolve=True) \
+                or str(c.device) != str(first.device):
+            raise config_error("seeds_engine", "shared needs one env config and device for every seed")
+    try:
+        return SharedEngine({**env_kwargs(first.env), "frame_stack": 1}, int(first.env.num_envs), len(cfgs),
+                            resolve_device(first.device))
+    except BatchedEnvError as err:
+        raise config_error("seeds_engine", f"shared: {err}") from err
 
 
 def _done(summary: Summary, run_dir: Path) -> None:
@@ -199,11 +231,12 @@ def _done(summary: Summary, run_dir: Path) -> None:
 
 
 @contextmanager
-def opened_run(cfg: DictConfig, out_dir: Path | None = None,
-               demos: TensorDictBase | None = None) -> Iterator[tuple[Trainer, Path] | Summary]:
+def opened_run(cfg: DictConfig, out_dir: Path | None = None, demos: TensorDictBase | None = None,
+               engine: Any | None = None) -> Iterator[tuple[Trainer, Path] | Summary]:
     """A run made ready to train: its folder claimed and locked, its logger open, its trainer
     built (and resumed) and its provenance recorded; or its stored summary where it finished
-    earlier at this budget. The lock and the logger are held for the block."""
+    earlier at this budget. The lock and the logger are held for the block. ``engine``: the
+    run's slice of a shared engine (:func:`shared_engine_of`)."""
     from memrl.dqn.loop import Trainer  # noqa: F811  (the runtime import; the one above is for types)
     from memrl.loggers import check_backend, open_logger
     from memrl.provenance import auto_precision_change, read_provenance, record_provenance
@@ -238,7 +271,7 @@ def opened_run(cfg: DictConfig, out_dir: Path | None = None,
             try:
                 if fresh:
                     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(saved, resolve=True))
-                trainer = Trainer(cfg, run_dir, demos, logger)
+                trainer = Trainer(cfg, run_dir, demos, logger, engine)
                 if cfg.resume:
                     trainer.resume(run_dir)
             except BaseException:

@@ -58,18 +58,58 @@ def singles(cfg, root, demos):
 
 
 @pytest.mark.parametrize(("mode", "extra"), [(None, ["env.num_envs=4"]),
+                                             (None, ["env.num_envs=4", "seeds_engine=shared"]),
+                                             ("B", ["env.num_envs=4", "seeds_engine=shared"]),
                                              pytest.param("B", [], marks=pytest.mark.slow)])
-def test_k_seeds_in_one_process_write_their_single_seed_runs(compose_cfg, tmp_path, demos, mode, extra):
-    """Default on the batched engine (4 envs) and B (stage 1, then stage 2 on the reference env)."""
+def test_k_seeds_in_one_process_write_their_single_seed_runs(compose_cfg, tmp_path, demos, mode, extra,
+                                                            monkeypatch):
+    """Default on the batched engine (4 envs, an engine per seed or one for all: the seeds' runs
+    in lockstep) and B (stage 1, then stage 2 on one shared engine, or on the reference env)."""
+    from memrl.envs.shared_engine import SharedEngine
+
     cfg = compose_cfg("train", [*TINY, *tiny_mode(mode), *extra])
     singles(cfg, tmp_path / "single", demos)
+    engines: list[SharedEngine] = []
+    original = SharedEngine.__init__
+
+    def keep(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        engines.append(self)
+
+    monkeypatch.setattr(SharedEngine, "__init__", keep)
     summaries = train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
     assert [s.seed for s in summaries] == list(SEEDS)
     assert_same_runs(tmp_path / "single", tmp_path / "group")
+    if "seeds_engine=shared" in extra:  # one engine of 3 x 4 envs, one call per step of the longest run
+        assert len(engines) == 1 and engines[0].engine.num_envs == 12
+        assert engines[0].steps == max(s.frames for s in summaries) // 4
+    else:
+        assert engines == []
 
 
-def test_a_killed_group_resumes_every_run_to_its_single_seed_run(compose_cfg, tmp_path, demos, monkeypatch):
-    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=3"]
+@pytest.mark.parametrize(("extra", "why"), [
+    (["env.num_envs=1"], "shared needs env.num_envs > 1"),
+    (["env.num_envs=4", "opponent=learned", "env.opponent.pool=[POOL]"], "shared: a shared engine takes no "
+                                                                          "learned cars"),
+])
+def test_a_shared_engine_it_cannot_build_is_refused_in_one_line(compose_cfg, tmp_path, extra, why):
+    from memrl.errors import ConfigError
+    from tests.helpers import save_pool
+
+    pool = save_pool(tmp_path / "pool", seeds=(1,))[0]
+    cfg = compose_cfg("train", [*TINY, "seeds_engine=shared", *(e.replace("POOL", pool) for e in extra)])
+    with pytest.raises(ConfigError, match=rf"config 'seeds_engine': {why}") as err:
+        train_seeds(cfg, SEEDS, tmp_path / "group")
+    assert "\n" not in str(err.value)
+    assert not (tmp_path / "group").exists()
+
+
+@pytest.mark.parametrize("engine", ["own", "shared"])
+def test_a_killed_group_resumes_every_run_to_its_single_seed_run(compose_cfg, tmp_path, demos, monkeypatch,
+                                                                 engine):
+    """Shared: the runs' last checkpoints fall at different env steps, so the resumed group's
+    slices hold frame rings saved at other heads than the shared engine's."""
+    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=3", f"seeds_engine={engine}"]
     cfg = compose_cfg("train", overrides)
     singles(cfg, tmp_path / "single", demos)
 
@@ -81,6 +121,12 @@ def test_a_killed_group_resumes_every_run_to_its_single_seed_run(compose_cfg, tm
         with pytest.raises(Killed):
             train_seeds(cfg, SEEDS, tmp_path / "group", demos=demos)
     assert not (tmp_path / "group" / "s1" / "summary.json").exists()
+    if engine == "shared":
+        from memrl.checkpoint import resume as ckpt
+
+        saved = {ckpt.load_state(tmp_path / "group" / f"s{s}" / "checkpoints" / "last")["counters"]["frames"]
+                 for s in SEEDS}
+        assert len(saved) > 1  # the slices resume from different steps
     resumed = compose_cfg("train", [*overrides, f"resume={tmp_path / 'group'}"])
     summaries = train_seeds(resumed, SEEDS, demos=demos)
     done = [json.loads((tmp_path / "single" / f"s{s}" / "summary.json").read_text()) for s in SEEDS]
@@ -90,16 +136,17 @@ def test_a_killed_group_resumes_every_run_to_its_single_seed_run(compose_cfg, tm
     assert_same_runs(tmp_path / "single", tmp_path / "group")
 
 
+@pytest.mark.parametrize("engine", ["own", "shared"])
 def test_a_stop_signal_saves_every_run_and_the_group_resumes_to_the_single_seed_runs(
-        compose_cfg, tmp_path, demos, monkeypatch):
+        compose_cfg, tmp_path, demos, monkeypatch, engine):
     """SIGTERM while seed 1 takes its turn: every run of the group saves its checkpoint (not only
     the one that saw the signal), the group stops with Interrupted, and resuming it gives the
-    single-seed runs."""
+    single-seed runs (shared: each run goes on to the end of its iterate and saves there)."""
     import signal
 
     from memrl import stop
 
-    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=100"]
+    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=100", f"seeds_engine={engine}"]
     cfg = compose_cfg("train", overrides)
     singles(cfg, tmp_path / "single", demos)
 

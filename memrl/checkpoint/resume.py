@@ -22,9 +22,10 @@ from memrl.data.recipe import LEGACY_RECIPE
 from memrl.modes import used
 
 RUNTIME_KEYS = ("resume", "overwrite", "paths", "logger", "progress", "total_frames", "total_episodes",
-                "checkpoint_every", "log_every", "hydra", "device", "eval")
+                "checkpoint_every", "log_every", "hydra", "device", "eval", "seeds_engine")
 """Config keys that may differ between a run and its resumption (outputs and budgets; the
-periodic evaluation ``eval`` leaves the training's RNG and weights as they are)."""
+periodic evaluation ``eval`` leaves the training's RNG and weights as they are; a group's
+``seeds_engine`` hosts the same envs either way)."""
 
 
 LEGACY_VALUES: dict[str, Any] = {

@@ -8,11 +8,15 @@ so episode k's scene is the same whatever N. Resets are lazy: an env whose episo
 reset at the start of the next step, so between steps no env is half reset and a checkpoint
 can hold the engine as it is (N = 1: checkpoints fall between episodes, where there is no env
 state to keep).
+
+:meth:`Collector.collect_steps` is the same collection as a generator that pauses before each
+env step, with the step's actions: runs whose envs are slices of one shared engine
+(:mod:`memrl.envs.shared_engine`) submit them there and are stepped together.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +30,15 @@ from memrl.envs.torchrl_env import make_env, unwrap
 
 Act = Callable[[TensorDictBase, int], None]
 """Sets ``td["action"]`` for the envs of ``td`` given the env steps done so far."""
+
+
+def drive(gen: Generator[Any, None, Any]) -> Any:
+    """Run ``gen`` to its end (its pauses need nothing: an engine of its own); its return value."""
+    while True:
+        try:
+            next(gen)
+        except StopIteration as end:
+            return end.value
 
 
 def episode_seed(seed: int, episode: int) -> int:
@@ -64,15 +77,19 @@ class Collector:
         num_envs: N (1: the reference env; more: the batched engine).
         device: the batched engine's device (N = 1 steps on the CPU).
         seed: the run seed (episode seeds derive from it).
+        engine: N > 1: the engine to step (a slice of a shared engine) instead of a new one.
     """
 
-    def __init__(self, env_cfg: Any, num_envs: int, device: torch.device, seed: int) -> None:
+    def __init__(self, env_cfg: Any, num_envs: int, device: torch.device, seed: int,
+                 engine: Any | None = None) -> None:
         self.num_envs, self.seed = int(num_envs), int(seed)
         self.batched = self.num_envs > 1
         self.run_device = device
         """Where the policy acts and the transitions go (the reference env steps on the CPU)."""
         self.device = device if self.batched else torch.device("cpu")
-        self.env = make_env(env_cfg, num_envs=self.num_envs, device=device) if self.batched \
+        if engine is not None and not self.batched:
+            raise ValueError("a shared engine's slice needs num_envs > 1")
+        self.env = make_env(env_cfg, num_envs=self.num_envs, device=device, engine=engine) if self.batched \
             else make_env(env_cfg)
         n, dev = self.num_envs, self.device
         self.td: TensorDictBase | None = None
@@ -89,6 +106,11 @@ class Collector:
     def collect(self, act: Act, steps: int, frames: int, stop_at_episode_end: bool = False) -> Steps:
         """Up to ``steps`` batched steps (fewer with ``stop_at_episode_end`` when an episode
         ends); ``frames`` is the run's env steps before the first."""
+        return drive(self.collect_steps(act, steps, frames, stop_at_episode_end))
+
+    def collect_steps(self, act: Act, steps: int, frames: int, stop_at_episode_end: bool = False
+                      ) -> Generator[torch.Tensor, None, Steps]:
+        """:meth:`collect`, pausing before each env step with its actions (``[N]``)."""
         out = Steps()
         for _ in range(steps):
             self._reset_pending()
@@ -100,6 +122,7 @@ class Collector:
                 on_device = td.to(self.run_device)
                 act(on_device, frames + out.frames)
                 td["action"] = on_device["action"].to(td.device)
+            yield td["action"]
             td = self.env.step(td)
             out.frames += self.num_envs
             moved = td if self.batched else td.unsqueeze(0)

@@ -18,7 +18,7 @@ import json
 import logging
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +36,7 @@ from memrl.checkpoint.weights import load_weights
 from memrl.data.buffers import priority_sampler
 from memrl.data.priority_sampler import reprioritize
 from memrl.dqn.builder import Stage, StageInputs, build_stage
-from memrl.dqn.collector import Collector, EpisodeEnd, Steps
+from memrl.dqn.collector import Collector, EpisodeEnd, Steps, drive
 from memrl.dqn.learner import Learner
 from memrl.dqn.overlap import RoundRunner
 from memrl.dqn.records import RunRecords
@@ -104,7 +104,7 @@ class Trainer:
     has one), on ``env.num_envs`` envs."""
 
     def __init__(self, cfg: DictConfig, out_dir: Path, demos: TensorDictBase | None = None,
-                 logger: Any | None = None) -> None:
+                 logger: Any | None = None, engine: Any | None = None) -> None:
         self.cfg, self.out_dir, self.demos = cfg, out_dir, demos
         self.spec = mode_of(cfg)
         self.mode = self.spec.name
@@ -116,7 +116,8 @@ class Trainer:
         np.random.seed(int(cfg.seed) % 2**32)
         self.device = resolve_device(cfg.device)
         self.num_envs = int(cfg.env.num_envs)
-        self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed))
+        # engine: this run's slice of a shared engine (memrl.envs.shared_engine), else its own
+        self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed), engine)
         network = network_for_task(cfg.network, cfg.env, float(cfg.agent.gamma))  # e.g. a support's bounds
         self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=network)
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),
@@ -140,6 +141,8 @@ class Trainer:
         self._readback_every = int(cfg.agent.loss_readback)
         self._checkpointed_at = 0  # episodes at the last checkpoint
         self.resumed_from: int | None = None
+        self.stopped_saved = False
+        """The loop stopped on request after writing its checkpoint (:meth:`iterate`)."""
         self._wall_before: float | None = 0.0  # training seconds of earlier calls (None: unknown)
         self._bar: tqdm | None = None  # begin() opens it
         self._start_clock()  # run() starts it again; stage 1 alone (bench, tests) counts from here
@@ -168,9 +171,18 @@ class Trainer:
 
     def iterate(self) -> None:
         """One turn of the loop: the update rounds due, the env steps until the next is due."""
+        drive(self.iterate_steps())
+
+    def iterate_steps(self) -> Generator[torch.Tensor, None, None]:
+        """:meth:`iterate`, pausing before each env step with its actions (a shared engine steps
+        every run's envs there: :func:`memrl.dqn.seed_group.run_lockstep`)."""
         c = self.counters
         batches = self._due_batches()  # sampled now, before the new steps join
-        losses, steps = self.rounds.run(batches, self._collect)  # overlapped or in turn
+        self.rounds.start(batches)  # overlapped with the steps, or before them
+        try:
+            steps = yield from self._collect_steps()
+        finally:
+            losses = self.rounds.finish()
         self._book(batches, losses)
         self._reprioritize(batches)  # prioritized replay: the new TD errors
         for part in steps.transitions:
@@ -185,6 +197,7 @@ class Trainer:
             self.save_checkpoint()
         if stop_requested() and self.can_stop():
             self.save_checkpoint()  # SIGINT / SIGTERM: a resumable stop (memrl.stop)
+            self.stopped_saved = True
             raise_pending()
 
     def can_stop(self) -> bool:
@@ -247,7 +260,7 @@ class Trainer:
         c.rounds += due
         return [self.stage.buffer.sample() for _ in range(due * self.stage.updates_per_round)]
 
-    def _collect(self) -> Steps:
+    def _collect_steps(self) -> Generator[torch.Tensor, None, Steps]:
         """Env steps until the next round is due (or the frame budget ends; N = 1: or the
         episode ends, where budgets and checkpoints are checked)."""
         c, n = self.counters, self.num_envs
@@ -255,7 +268,7 @@ class Trainer:
         left = self.budget.steps_left(c.frames, n)
         if n > 1 and left is not None:
             steps = min(steps, left)
-        out = self.collector.collect(self._act, steps, c.frames, stop_at_episode_end=n == 1)
+        out = yield from self.collector.collect_steps(self._act, steps, c.frames, stop_at_episode_end=n == 1)
         c.frames += out.frames
         return out
 

@@ -43,6 +43,8 @@ class RoundRunner:
             for module in self.acting_net.modules():  # a copied compiled forward calls the original
                 module._compiled_call_impl = None
         self.update_seconds = 0.0
+        self._batches = False
+        self._result: Any = None  # the round start() began: (losses, seconds) or its future
         self.stale = False
         """The acting copy still holds the weights before the last round (see :meth:`flush`)."""
 
@@ -50,23 +52,35 @@ class RoundRunner:
             collect: Callable[[], T]) -> tuple[list[torch.Tensor], T]:
         """The updates of ``batches`` and ``collect()``: overlapped, or updates first; their
         losses as the learner left them (:meth:`Learner.step`: not read back)."""
+        self.start(batches)
+        try:
+            out = collect()
+        finally:
+            losses = self.finish()
+        return losses, out
+
+    def start(self, batches: Sequence[TensorDictBase]) -> None:
+        """:meth:`run` in two halves around the caller's collection: the updates of ``batches``
+        start (in the learner thread when overlapping, else they run now); :meth:`finish`."""
         def learn() -> tuple[list[torch.Tensor], float]:
             t0 = time.perf_counter()
             return [self.learner.step(b) for b in batches], time.perf_counter() - t0
 
+        self._batches = bool(batches)
         if not self.overlap or not batches:
-            losses, seconds = learn()
-            out = collect()
-        else:  # the update in the learner thread, the env in this one
-            future = self._thread().submit(learn)
-            try:
-                out = collect()
-            finally:
-                losses, seconds = future.result()  # re-raises the update's error, if any
+            self._result = learn()
+        else:  # the update in the learner thread, the env in the caller's
+            self._result = self._thread().submit(learn)
+
+    def finish(self) -> list[torch.Tensor]:
+        """The losses of the round :meth:`start` began (waiting for its thread)."""
+        result, self._result = self._result, None
+        assert result is not None, "start() first"
+        losses, seconds = result if isinstance(result, tuple) else result.result()  # re-raises its error
         self.update_seconds += seconds
-        if batches or self.stale:
+        if self._batches or self.stale:
             self.sync()
-        return losses, out
+        return losses
 
     def flush(self, batches: Sequence[TensorDictBase]) -> list[torch.Tensor]:
         """The rounds due at the end of a run, with the acting copy left as it was: the steps a

@@ -8,13 +8,19 @@ generators (torch, numpy, ``random``), swapped in around its turns: every draw a
 the draw its own single-seed process makes, so its episodes, weights and checkpoints are that
 run's (``tests/test_seed_group.py``), and a killed group resumes each run from its checkpoint.
 
+With ``seeds_engine=shared`` the runs' training envs are slices of one batched engine
+(:mod:`memrl.envs.shared_engine`) and :func:`run_lockstep` takes the turns: each run goes on
+until its next env step (:meth:`Trainer.iterate_steps` pauses there with the step's actions),
+then one engine call steps every run's envs. Each run's episodes, weights and checkpoints are
+still those of its own process.
+
 Hand-written: TorchRL's collectors and Hydra's launchers run one configuration per process.
 """
 
 from __future__ import annotations
 
 import random
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +30,8 @@ import numpy as np
 import torch
 
 from memrl.dqn.loop import Summary, Trainer
-from memrl.stop import interruption, stop_requested
+from memrl.envs.shared_engine import SharedEngine
+from memrl.stop import Interrupted, interruption, request_stop, stop_requested
 
 _ACTIVE: list[Path | None] = [None]
 """The run folder whose turn it is (None: no run of a group): :func:`active_run`."""
@@ -127,3 +134,101 @@ def run_turns(members: Sequence[Member]) -> list[Summary]:
     out = [m.summary for m in members]
     assert all(s is not None for s in out)
     return out  # type: ignore[return-value]
+
+
+def run_lockstep(members: Sequence[Member], shared: SharedEngine) -> list[Summary]:
+    """:func:`run_turns` for members whose envs are the slices of ``shared``, in member order:
+    in each pass every member runs until its next env step and submits its actions (or to the
+    end of its budget), then ``shared`` steps them all. A stop (SIGINT / SIGTERM) lets every
+    member go on to its next checkpoint, as its own process does; then it is raised."""
+    lockstep = _Lockstep([m for m in members if m.trainer is not None])
+    try:
+        for m in list(lockstep.live):
+            lockstep.current = m
+            with m.turn():
+                m.trainer.begin()  # type: ignore[union-attr]
+        while lockstep.live:
+            for m in list(lockstep.live):
+                lockstep.current = m
+                lockstep.advance(m)
+            if any(s.submitted is not None for s in shared.slices):
+                shared.step()
+    except BaseException as err:
+        lockstep.abort(err)
+        raise
+    finally:
+        for m in members:
+            if m.trainer is not None:
+                m.trainer.close()
+    if lockstep.stop is not None:
+        raise lockstep.stop
+    out = [m.summary for m in members]
+    assert all(s is not None for s in out)
+    return out  # type: ignore[return-value]
+
+
+@dataclass
+class _Lockstep:
+    """The members of :func:`run_lockstep` still training, and where each one is."""
+
+    live: list[Member]
+    paused: dict[int, Generator[torch.Tensor, None, None]] = field(default_factory=dict)
+    """id(member): its iterate, paused before an env step."""
+    stop: Interrupted | None = None
+    """A member's stop after its checkpoint; the others go on to theirs."""
+    current: Member | None = None
+
+    def advance(self, m: Member) -> None:
+        """Member ``m`` on to its next env step, its actions submitted; or to its end (its
+        budget, or a stop after its checkpoint), and out of :attr:`live`."""
+        try:
+            with m.turn():
+                if self._to_next_step(m):
+                    return
+        except Interrupted as err:
+            assert m.trainer is not None
+            if not m.trainer.stopped_saved:
+                raise
+            self.stop = self.stop or err
+            m.trainer.close()
+            self.paused.pop(id(m), None)
+            if len(self.live) > 1:
+                request_stop(err.signum)  # raise_pending cleared it: the others stop too
+        self.live.remove(m)
+
+    def _to_next_step(self, m: Member) -> bool:
+        """Run ``m`` on to its next env step and submit its actions (True), or to the end of its
+        budget (False: its summary set)."""
+        trainer = m.trainer
+        assert trainer is not None
+        while True:
+            gen = self.paused.pop(id(m), None)
+            if gen is None:
+                if trainer.done():
+                    trainer.end_rounds()
+                    trainer.close()
+                    m.summary = trainer.finish()
+                    return False
+                gen = trainer.iterate_steps()
+            try:
+                actions = next(gen)
+            except StopIteration:
+                continue  # that iterate ended; the next one
+            self.paused[id(m)] = gen
+            trainer.collector.env.base_env.engine.submit(actions)
+            return True
+
+    def abort(self, err: BaseException) -> None:
+        """After a failure or an immediate stop: paused iterates closed (their update rounds
+        joined); on a stop, the members between iterates save, as :func:`run_turns` does."""
+        midway = set(self.paused)
+        for gen in self.paused.values():
+            gen.close()
+        self.paused.clear()
+        if interruption(err) is None and not stop_requested():
+            return
+        for m in self.live:
+            if m is not self.current and id(m) not in midway and m.trainer is not None \
+                    and m.trainer.can_stop():
+                with m.turn():
+                    m.trainer.save_checkpoint()

@@ -40,8 +40,8 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _meta(engine: BatchedLaneChange) -> dict[str, Any]:
-    return {"num_envs": engine.num_envs, "frame_stack": engine.frame_stack,
+def _meta(engine: BatchedLaneChange, num_envs: int | None = None) -> dict[str, Any]:
+    return {"num_envs": engine.num_envs if num_envs is None else num_envs, "frame_stack": engine.frame_stack,
             "frame_stride": engine.frame_stride,
             "car_slots": int(engine.present.shape[1]), "pool_size": engine.opponents.pool_size,
             "config": _flat(env_config_dict(engine.cfg))}
@@ -51,22 +51,31 @@ def _tensor(engine: BatchedLaneChange, name: str) -> torch.Tensor:
     return engine._car_fresh if name == "car_fresh" else getattr(engine, name)
 
 
-def engine_state(engine: BatchedLaneChange) -> dict[str, Any]:
-    """Everything that determines the engine's future, as copies (tensors on its device)."""
-    state: dict[str, Any] = {"version": VERSION, **_meta(engine)}
+def engine_state(engine: BatchedLaneChange, rows: slice | None = None, shift: int = 0) -> dict[str, Any]:
+    """Everything that determines the engine's future, as copies (tensors on its device).
+
+    ``rows`` (a ``slice(start, stop)`` of env indices): the state of an engine of those envs
+    alone (:mod:`memrl.envs.shared_engine`), its frame ring turned by ``shift`` slots (the
+    head its own engine would have: a slice loaded at another step keeps its own).
+    """
+    r = slice(None) if rows is None else rows
+    n = engine.num_envs if rows is None else len(range(engine.num_envs)[r])
+    state: dict[str, Any] = {"version": VERSION, **_meta(engine, n)}
     for name in TENSORS:
-        state[name] = _tensor(engine, name).clone()
-    state["frames"] = engine._frames.clone()  # [L, N, H, W] (L = history), newest in slot `head`
-    state["head"] = engine._head
-    state["car_frames"] = None if engine._car_frames is None else engine._car_frames.clone()
+        state[name] = _tensor(engine, name)[r].clone()
+    # [L, N, H, W] (L = history), newest in slot `head`
+    state["frames"] = engine._frames[:, r].roll(shift, 0) if shift else engine._frames[:, r].clone()
+    state["head"] = (engine._head + shift) % engine.history
+    state["car_frames"] = None if engine._car_frames is None else engine._car_frames[r].clone()
     # each env's generator: the scene draws of its next resets and its learned cars' exploration
-    state["rngs"] = [None if rng is None else rng.bit_generator.state for rng in engine.rngs]
+    state["rngs"] = [None if rng is None else rng.bit_generator.state for rng in engine.rngs[r]]
     return state
 
 
-def _mismatch(engine: BatchedLaneChange, state: dict[str, Any]) -> list[str]:
-    """What differs between the engine and the one that saved ``state`` (empty: nothing)."""
-    mine = _meta(engine)
+def _mismatch(engine: BatchedLaneChange, state: dict[str, Any], num_envs: int | None = None) -> list[str]:
+    """What differs between the engine (of ``num_envs`` envs: a slice's) and the one that saved
+    ``state`` (empty: nothing)."""
+    mine = _meta(engine, num_envs)
     diffs = []
     if state.get("version") != VERSION:
         diffs.append(f"state layout version {state.get('version')!r} (this engine reads {VERSION})")
@@ -81,8 +90,10 @@ def _mismatch(engine: BatchedLaneChange, state: dict[str, Any]) -> list[str]:
     return diffs
 
 
-def load_engine_state(engine: BatchedLaneChange, state: dict[str, Any]) -> None:
-    """Restore ``state`` (from :func:`engine_state`) into ``engine``, on the engine's device.
+def load_engine_state(engine: BatchedLaneChange, state: dict[str, Any], rows: slice | None = None) -> int:
+    """Restore ``state`` (from :func:`engine_state`) into ``engine``, on the engine's device; with
+    ``rows``, into those envs only, the saved ring turned to the engine's head. Returns the
+    shift that :func:`engine_state` takes to give the saved ring's head back (0 without rows).
 
     Raises:
         BatchedEnvError: the saving engine had another config, N, frame stack, car slots or
@@ -90,7 +101,8 @@ def load_engine_state(engine: BatchedLaneChange, state: dict[str, Any]) -> None:
     """
     if not isinstance(state, dict):
         raise BatchedEnvError(f"engine state must be a dict from state_dict(), got {type(state).__name__}")
-    diffs = _mismatch(engine, state)
+    r = slice(None) if rows is None else rows
+    diffs = _mismatch(engine, state, None if rows is None else len(range(engine.num_envs)[r]))
     if diffs:
         raise BatchedEnvError("engine state was saved by a different engine: " + "; ".join(diffs))
     missing = [k for k in (*TENSORS, "frames", "head", "car_frames", "rngs") if k not in state]
@@ -100,12 +112,24 @@ def load_engine_state(engine: BatchedLaneChange, state: dict[str, Any]) -> None:
         raise BatchedEnvError("engine state: learned cars' frame stacks saved by an engine "
                               f"{'without' if state['car_frames'] is None else 'with'} learned cars")
     for name in TENSORS:
-        _copy(_tensor(engine, name), state[name], name)
-    _copy(engine._frames, state["frames"], "frames")  # in place: the ring's views stay valid
-    engine._head = int(state["head"])
+        _copy(_tensor(engine, name)[r], state[name], name)
+    shift = 0
+    if rows is None:
+        _copy(engine._frames, state["frames"], "frames")  # in place: the ring's views stay valid
+        engine._head = int(state["head"])
+    else:  # the engine's head stays; the saved ring turns to it
+        shift = (int(state["head"]) - engine._head) % engine.history
+        frames = state["frames"]
+        _copy(engine._frames[:, r], frames.roll(-shift, 0) if isinstance(frames, torch.Tensor) else frames,
+              "frames")
     if engine._car_frames is not None:
-        _copy(engine._car_frames, state["car_frames"], "car_frames")
-    engine.rngs = [None if s is None else _generator(s) for s in state["rngs"]]
+        _copy(engine._car_frames[r], state["car_frames"], "car_frames")
+    rngs = [None if s is None else _generator(s) for s in state["rngs"]]
+    if len(rngs) != len(engine.rngs[r]):
+        raise BatchedEnvError(f"engine state rngs: expected {len(engine.rngs[r])} generators, "
+                              f"got {len(rngs)}")
+    engine.rngs[r] = rngs
+    return shift
 
 
 def _copy(into: torch.Tensor, value: Any, name: str) -> None:

@@ -30,11 +30,16 @@ class BatchedLaneChangeEnv(EnvBase):
         num_envs: N >= 1.
         device: ``auto``, ``cpu``, ``cuda`` or ``cuda:K`` (engine, specs and outputs).
         frame_stack: frames per ``pixels`` stack.
+        engine: the engine to step instead of a new one (a run's slice of a shared engine,
+            :class:`~memrl.envs.shared_engine.EngineSlice`, of ``num_envs`` envs).
     """
 
     def __init__(self, config: dict[str, Any] | None, num_envs: int, device: Any = "cpu",
-                 frame_stack: int = 4) -> None:
-        engine = BatchedLaneChange(config, num_envs, device, frame_stack)
+                 frame_stack: int = 4, engine: Any | None = None) -> None:
+        if engine is not None and engine.num_envs != num_envs:
+            raise ValueError(f"an engine of {engine.num_envs} envs for num_envs={num_envs}")
+        if engine is None:
+            engine = BatchedLaneChange(config, num_envs, device, frame_stack)
         super().__init__(device=engine.device, batch_size=torch.Size([engine.num_envs]))
         self.engine = engine
         n, b = engine.num_envs, engine.cfg.bev

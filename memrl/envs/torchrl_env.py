@@ -86,6 +86,7 @@ def make_env(
     render_mode: str | None = None,
     num_envs: int | None = None,
     device: Any = "cpu",
+    engine: Any | None = None,
 ) -> TransformedEnv:
     """Build the lane-change env for TorchRL.
 
@@ -103,6 +104,8 @@ def make_env(
             size ``[N]`` (:class:`~memrl.envs.torchrl_batched.BatchedLaneChangeEnv`), every key
             with a leading env dimension; env i's first reset takes ``seed + i``.
         device: the batched engine's device (``auto``, ``cpu``, ``cuda``, ``cuda:K``).
+        engine: with ``num_envs``, the engine to step (a run's slice of a shared engine,
+            :mod:`memrl.envs.shared_engine`) instead of a new one.
     """
     register_envs()
     values = {**env_kwargs(env_cfg), "frame_stack": 1}  # CatFrames / the engine's ring stack
@@ -111,7 +114,7 @@ def make_env(
             raise ValueError("render_mode: full-scene pictures come from the single env (num_envs=None)")
         from memrl.envs.torchrl_batched import BatchedLaneChangeEnv
 
-        batched = TransformedEnv(BatchedLaneChangeEnv(values, num_envs, device, frame_stack),
+        batched = TransformedEnv(BatchedLaneChangeEnv(values, num_envs, device, frame_stack, engine),
                                  Compose(StepCounter(), RewardSum()))
         if seed is not None:
             batched.set_seed(seed)

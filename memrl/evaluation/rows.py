@@ -26,11 +26,11 @@ from memrl.evaluation.results import EvalResult
 from memrl.modes import used
 
 IGNORED_KEYS = ("seed", "progress", "resume", "paths", "logger", "log_every", "checkpoint_every",
-                "hydra", "task_name", "debug", "variant", "mode.stage1.init", "eval")
+                "hydra", "task_name", "debug", "variant", "mode.stage1.init", "eval", "seeds_engine")
 """Config keys (and key prefixes: ``paths`` covers ``paths.*``) that never split a row (a
 study variant is in the row's name already: :func:`row_label`; ``mode.stage1.init`` names
 each seed's own stage-1 run, e.g. ``.../B_constant_s${seed}``; ``eval``, the periodic
-evaluation, trains the same weights whatever its schedule)."""
+evaluation, trains the same weights whatever its schedule, and so does ``seeds_engine``)."""
 ROW_ORDER = ("Default", "A", "B", "scripted", "random", "human")
 """Rows in this order first (each followed by its other-traffic rows, ``B (mixed)``); other
 labels follow alphabetically."""
