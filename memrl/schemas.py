@@ -539,6 +539,7 @@ class GroupBench:
     rounds: int = spec(ge=1)
     overrides: list[str] = MISSING
     one_process_threads: int = spec(ge=0)
+    engines: list[str] = spec(choices=("own", "shared"), nonempty=True)
 
 
 @dataclass

@@ -300,13 +300,15 @@ def test_bench_seeds_reports_both_updates_per_k(compose_cfg, tmp_path):
 def test_bench_group_times_the_same_runs_in_one_process_and_in_k(compose_cfg, tmp_path):
     """Both arms train the same seeds on the same budget: the same env steps and updates, run by run."""
     overrides = ["+experiment=smoke", "agent.warmup_frames=20", "agent.batch_size=8", "buffer.capacity=400",
-                 "env.duration=30", "logger=none", "progress=false", "eval.every=0"]
+                 "env.duration=30", "env.num_envs=2", "logger=none", "progress=false", "eval.every=0"]
     cfg = compose_cfg("bench", ["benchmarks=[group]", "group.seeds=2", "group.frames=60", "group.rounds=1",
                                 f"group.overrides=[{','.join(repr(o) for o in overrides)}]"])
     res = bench(cfg, tmp_path)["group"]
-    one, many = res["rounds"]["one_process"], res["rounds"]["processes"]
-    assert len(one) == len(many) == 1
-    assert one[0]["frames"] == many[0]["frames"] >= 2 * 60 and one[0]["updates"] == many[0]["updates"] > 0
-    ratio = one[0]["env_steps_per_s"] / many[0]["env_steps_per_s"]
-    assert res["one_process_over_processes"] == round(ratio, 3)
+    many = res["rounds"]["processes"]
+    for arm in ("one_process", "one_process_shared"):  # an engine per seed, one for both
+        one = res["rounds"][arm]
+        assert len(one) == len(many) == 1
+        assert one[0]["frames"] == many[0]["frames"] >= 2 * 60 and one[0]["updates"] == many[0]["updates"] > 0
+        ratio = one[0]["env_steps_per_s"] / many[0]["env_steps_per_s"]
+        assert res[f"{arm}_over_processes"] == round(ratio, 3)
     assert res["one_process_threads"] == (os.cpu_count() or 1)  # 0: one per CPU, as a process alone

@@ -146,7 +146,8 @@ def test_a_stop_signal_saves_every_run_and_the_group_resumes_to_the_single_seed_
 
     from memrl import stop
 
-    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=100", f"seeds_engine={engine}"]
+    overrides = [*TINY, "env.num_envs=4", "total_episodes=12", "checkpoint_every=100",
+                 f"seeds_engine={engine}"]
     cfg = compose_cfg("train", overrides)
     singles(cfg, tmp_path / "single", demos)
 

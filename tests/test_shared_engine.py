@@ -56,7 +56,7 @@ def test_slices_step_as_engines_of_their_own():
     shared, own = fresh()
     rng = np.random.default_rng(0)
     ends = 0
-    for t in range(300):
+    for _ in range(300):
         actions = [torch.as_tensor(rng.integers(0, 9, N)) for _ in range(K)]
         step_both(shared, own, actions)
         ends += sum(int(e.steps.eq(0).sum()) for e in own)

@@ -4,7 +4,9 @@ against K single-seed processes running at once: end-to-end env steps/s of all K
 Both arms run ``python -m memrl.train`` as subprocesses on the same overrides and budget, so
 both pay their start-up (imports, env and buffer building) inside the timed span: the figure is
 what a user's K runs take. The per-run rate (``frames`` over the runs' own ``wall_s`` from
-``summary.json``) is reported beside it. Arms alternate over ``rounds`` (ABBA...), each in a
+``summary.json``) is reported beside it. The one process runs with an engine per seed
+(``one_process``, ``seeds_engine=own``) and, with ``engines`` naming ``shared``, with the seeds'
+envs on one engine (``one_process_shared``). Arms alternate over ``rounds`` (ABBA...), each in a
 fresh temporary folder.
 """
 
@@ -18,6 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+ARMS = {"one_process": "own", "one_process_shared": "shared"}
+"""One-process arms and their ``seeds_engine``."""
 
 
 def _cmd(overrides: list[str], frames: int, out: Path, seeds: list[int]) -> list[str]:
@@ -34,10 +39,10 @@ def _arm(name: str, k: int, frames: int, overrides: list[str], root: Path, threa
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.PIPE}
     t0 = time.perf_counter()
-    if name == "one_process":
+    if name in ARMS:
         out = root / "group"
-        procs = [subprocess.Popen(_cmd([*overrides, f"agent.threads={threads}"], frames, out, list(range(k))),
-                                  **quiet)]  # type: ignore[call-overload]
+        one = [*overrides, f"agent.threads={threads}", f"seeds_engine={ARMS[name]}"]
+        procs = [subprocess.Popen(_cmd(one, frames, out, list(range(k))), **quiet)]  # type: ignore[call-overload]
         folders = [out / f"s{s}" for s in range(k)]
     else:
         folders = [root / f"single_s{s}" for s in range(k)]
@@ -56,18 +61,19 @@ def _arm(name: str, k: int, frames: int, overrides: list[str], root: Path, threa
 
 
 def run(seeds: int, frames: int, rounds: int, overrides: list[str],
-        one_process_threads: int) -> dict[str, Any]:
+        one_process_threads: int, engines: list[str]) -> dict[str, Any]:
     """``seeds`` runs of ``frames`` env steps each, in one process (``one_process_threads`` torch
-    threads, 0: one per CPU) and in ``seeds`` processes (one thread each)."""
+    threads, 0: one per CPU; one arm per ``engines`` entry, own or shared) and in ``seeds``
+    processes (one thread each)."""
     threads = one_process_threads or os.cpu_count() or 1
-    arms: dict[str, list[dict[str, Any]]] = {"one_process": [], "processes": []}
-    order = ["one_process", "processes"]
+    order = [name for name, engine in ARMS.items() if engine in engines] + ["processes"]
+    arms: dict[str, list[dict[str, Any]]] = {name: [] for name in order}
     for r in range(rounds):
         for name in order if r % 2 == 0 else order[::-1]:
             with tempfile.TemporaryDirectory(prefix="memrl_bench_group_") as tmp:
                 arms[name].append(_arm(name, seeds, frames, list(overrides), Path(tmp), threads))
     best = {n: max(rows, key=lambda row: row["env_steps_per_s"]) for n, rows in arms.items()}
+    base = best["processes"]["env_steps_per_s"]
+    ratios = {f"{n}_over_processes": round(best[n]["env_steps_per_s"] / base, 3) for n in order[:-1]}
     return {"seeds": seeds, "frames_per_run": frames, "overrides": list(overrides),
-            "cpu_count": os.cpu_count(), "one_process_threads": threads,
-            "rounds": arms, "one_process_over_processes": round(
-                best["one_process"]["env_steps_per_s"] / best["processes"]["env_steps_per_s"], 3)}
+            "cpu_count": os.cpu_count(), "one_process_threads": threads, "rounds": arms, **ratios}
