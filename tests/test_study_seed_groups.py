@@ -46,17 +46,20 @@ def assert_single_runs(runs, single):
         assert_same_run(single / name, runs / name, seed)
 
 
-def test_the_study_trains_k_seeds_per_process_and_resumes_a_killed_group(compose_cfg, tmp_path, monkeypatch):
-    """Seed 0 finished first on its own; then seeds 1 and 2 share one process, are killed
-    mid-way, and the same call again resumes that group: every run folder is its single run's,
-    and each run's train.log holds its own lines (and the group's failure, naming both)."""
+@pytest.mark.parametrize("engine", ["own", "shared"])
+def test_the_study_trains_k_seeds_per_process_and_resumes_a_killed_group(compose_cfg, tmp_path, monkeypatch,
+                                                                          engine):
+    """Seed 0 finished first on its own; then seeds 1 and 2 share one process (and with
+    ``seeds_engine=shared`` one engine), are killed mid-way, and the same call again resumes
+    that group: every run folder is its single run's, and each run's train.log holds its own
+    lines (and the group's failure, naming both)."""
     import memrl.train
     from memrl.dqn.loop import Trainer
     from memrl.studies.grid import cells
     from memrl.study import study
     from memrl.train import train
 
-    train_ = [*TINY, "total_episodes=6", "env.num_envs=2"]
+    train_ = [*TINY, "total_episodes=6", "env.num_envs=2", f"seeds_engine={engine}"]
     folder = tmp_path / "s"
     for cell in cells(study_cfg(compose_cfg, folder, "[0,1,2]", 1, train_).study, folder / "runs"):
         train(cell.cfg, tmp_path / "single" / cell.name)
@@ -66,9 +69,12 @@ def test_the_study_trains_k_seeds_per_process_and_resumes_a_killed_group(compose
     groups: list[list[int]] = []
     real = memrl.train.train_group
 
-    def recorded(cfgs, run_dirs, demos=None):
+    shared: list[bool] = []
+
+    def recorded(cfgs, run_dirs, demos=None, shared_engine=False):
         groups.append([int(c.seed) for c in cfgs])
-        return real(cfgs, run_dirs, demos)
+        shared.append(shared_engine)
+        return real(cfgs, run_dirs, demos, shared_engine)
 
     monkeypatch.setattr(memrl.train, "train_group", recorded)
     original = Trainer._episodes_done
@@ -88,6 +94,7 @@ def test_the_study_trains_k_seeds_per_process_and_resumes_a_killed_group(compose
     assert again.skipped == ["Default_constant_s0"]
     assert again.resumed == ["Default_constant_s1", "Default_constant_s2"] and not again.failed
     assert groups == [[1, 2], [1, 2]]  # one process for seeds 1 and 2, twice; seed 0 on its own
+    assert shared == [engine == "shared"] * 2
     assert_single_runs(folder / "runs", tmp_path / "single")
     for seed, other in ((1, 2), (2, 1)):
         log = (folder / "runs" / f"Default_constant_s{seed}" / "train.log").read_text()

@@ -141,7 +141,8 @@ def train_cells(cfgs: Sequence[DictConfig], run_dirs: Sequence[str],
                 resumes: Sequence[bool]) -> list[dict[str, Any]]:
     """Train (or resume) cells in this process: one with :func:`memrl.train.train`, several (the
     seeds of one configuration, ``study.seeds_per_process``) with
-    :func:`memrl.train.train_group`, each run writing what its own process writes and its log
+    :func:`memrl.train.train_group`, on one shared engine where their ``seeds_engine`` is
+    ``shared``), each run writing what its own process writes and its log
     lines going to its own ``<run>/train.log``. Takes and returns plain values (worker processes)."""
     import dataclasses
 
@@ -159,7 +160,8 @@ def train_cells(cfgs: Sequence[DictConfig], run_dirs: Sequence[str],
         try:
             if len(runs) == 1:
                 return [dataclasses.asdict(train(runs[0], paths[0]))]
-            return [dataclasses.asdict(s) for s in train_group(runs, paths)]
+            shared = str(runs[0].seeds_engine) == "shared"  # study.train_overrides=[seeds_engine=shared]
+            return [dataclasses.asdict(s) for s in train_group(runs, paths, shared_engine=shared)]
         except (Interrupted, KeyboardInterrupt) as stop:  # asked for: no failure, no traceback
             log.info("training %s: %s; its checkpoint is kept", where, stop or "stopped by Ctrl-C")
             raise
