@@ -2,13 +2,13 @@
 # One GPU-machine check (run by the device tool from the repo root, .wheels carried; see
 # docs/performance.md): install the wheels the image lacks, the CUDA tests, the batched-engine
 # and end-to-end benchmarks on CUDA, then the engine's own tests on a CUDA-default machine.
-# Everything it prints goes to $OUT/log.txt; benchmark JSON to $OUT/{batched,e2e,seeds}/bench.json.
+# Everything it prints goes to $OUT/log.txt; benchmark JSON to $OUT/{batched,e2e,seeds,group}/bench.json.
 set -u
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
 export PYTHONUNBUFFERED=1 SDL_VIDEODRIVER=dummy PYTHONDONTWRITEBYTECODE=1
 step() { echo "=== $(date +%T) $*"; }
-want() { [[ " ${STEPS:-cuda batched e2e seeds suite} " == *" $1 "* ]]; }  # STEPS="cuda e2e": a subset
+want() { [[ " ${STEPS:-cuda batched e2e seeds group suite} " == *" $1 "* ]]; }  # STEPS="cuda e2e": a subset
 step install
 python3 -m pip install -q --no-index --no-deps .wheels/*.whl || exit 1
 python3 -m pip install -q --no-deps --no-build-isolation --ignore-requires-python -e . || exit 1
@@ -28,7 +28,11 @@ timeout "${T_E2E:-240}" python3 -m memrl.bench e2e e2e.device=cuda "e2e.gpu_num_
 want seeds && { step bench seeds on cuda: K separate updates vs K networks stacked with vmap
 timeout "${T_SEEDS:-90}" python3 -m memrl.bench seeds seeds.device=cuda "seeds.seeds=[1,5,16]" seeds.seconds=2 \
   hydra.run.dir="$OUT/seeds"; }
-rm -rf "$OUT/batched/.hydra" "$OUT/e2e/.hydra" "$OUT/seeds/.hydra"
+want group && { step bench group on cuda: 5 seeds in one process, an engine each and one shared, vs 5 processes
+timeout "${T_GROUP:-150}" python3 -m memrl.bench group group.seeds=5 group.frames="${GROUP_FRAMES:-1500}" group.rounds=1 \
+  "group.overrides=['env.num_envs=16','eval.every=0','logger=none','progress=false','checkpoint_every=1000','device=cuda']" \
+  hydra.run.dir="$OUT/group"; }
+rm -rf "$OUT/batched/.hydra" "$OUT/e2e/.hydra" "$OUT/seeds/.hydra" "$OUT/group/.hydra"
 want suite && { step engine tests, device auto = cuda
 timeout "${T_SUITE:-80}" python3 -m pytest -q -p no:cacheprovider -n 8 tests/test_batched.py \
   tests/test_batched_state.py tests/test_engine_runner.py tests/test_frame_store.py tests/test_train_batched.py; }
