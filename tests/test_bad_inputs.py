@@ -58,6 +58,7 @@ ROWS = [
     ("train", ["seed=abc"], "seed"),
     ("train", ["seeds=[-1]"], "seeds"),
     ("train", ["seeds=[]"], "seeds"),
+    ("train", ["seeds_engine=both"], "seeds_engine"),
     ("train", ["agent.update_mode=captured", "device=cpu"], "agent.update_mode"),
     ("train", ["device=gpu"], "device"),
     ("train", ["env.num_envs=0"], "num_envs"),
