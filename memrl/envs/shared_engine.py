@@ -52,11 +52,10 @@ class EngineSlice:
 
     def step(self, actions: Any) -> StepOut:
         """This run's rows of the shared step taken with its submitted ``actions`` (the same)."""
-        a = check_actions(actions, self.num_envs, self.device)
         if self._out is None or self._taken is None:
             raise BatchedEnvError("a shared engine's slice steps with SharedEngine.step(): submit its "
                                   "actions first")
-        if not torch.equal(a, self._taken):
+        if not torch.equal(torch.as_tensor(actions, device=self.device), self._taken):  # checked at submit
             raise BatchedEnvError("a slice stepped with other actions than it submitted")
         out, self._out, self._taken = self._out, None, None
         return out
