@@ -185,10 +185,11 @@ def _along(v, rng):
     return center, paths, labels
 
 
-def test_paths_along_the_road_are_the_column_runs_of_a_hand_computation():
+def test_paths_along_the_road_are_the_column_runs_of_a_hand_computation(monkeypatch):
     """64 views (enough for column runs), one car each straight along the road: its column
     floor(42 + dy / 0.2), rows from its tip's floor(42 - (dx + 2 v) / 0.8) to its own
-    floor(42 - dx / 0.8), clipped to the picture; nothing else drawn."""
+    floor(42 - dx / 0.8), clipped to the picture; nothing else drawn, and the runs write those
+    pixels once each (no write to the spare element)."""
     import memrl.envs.render_paths as paths_module
 
     renderer = BEVRenderer(VIEW, 2, 4.0, path_time=2.0, max_speed=15.0, max_curvature=0.05, channels=1)
@@ -198,6 +199,9 @@ def test_paths_along_the_road_are_the_column_runs_of_a_hand_computation():
     dx, dy = rng.uniform(-40.0, 40.0, v).round(1) + 0.05, rng.uniform(-9.0, 9.0, v).round(1) + 0.05
     speed = rng.choice([0.0, 3.0, 7.5, 15.0], v)
     paths = np.stack([500.0 + dx, dy, np.zeros(v), np.zeros(v), speed], -1)[:, None]
+    written = []  # the offsets the column runs write: exactly their pixels, none to the spare
+    runs = paths_module._column_runs
+    monkeypatch.setattr(paths_module, "_column_runs", lambda *a: written.append(runs(*a)) or written[-1])
     drawn = (_paths_only(renderer, center, paths, np.full((v, 1), LABEL["constant"]))
              != _paths_only(renderer, center, paths, np.full((v, 1), -1)))
     for i in range(v):
@@ -207,6 +211,8 @@ def test_paths_along_the_road_are_the_column_runs_of_a_hand_computation():
         expected = {(r, col) for r in rows} if 0 <= col < 84 else set()
         assert set(zip(*np.nonzero(drawn[i]), strict=True)) == expected, i
     assert drawn.sum() > 500
+    offsets = np.concatenate([index.reshape(-1) for index, *_ in written[0][0]])  # one layer, once
+    assert len(written) == 1 and len(offsets) == len(np.unique(offsets)) == drawn.sum()
 
 
 def test_column_runs_draw_what_the_chords_draw(monkeypatch):

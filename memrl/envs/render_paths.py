@@ -37,9 +37,10 @@ pass (more: per run of layers with equal windows); the same pixels either way.""
 MANY = 64
 """Paths (views x car slots) from which :func:`paint_paths` draws only those that can show and
 those along the road as column runs (on the CPU); the same pixels either way."""
-Steps = dict[int, list[tuple[Any, int, int]]]
-"""Per layer (run of car slots drawn in one write): offsets ``[paths, ...]`` in the pictures'
-buffer (the spare element: none) of the pixels of paths ``lo:hi``."""
+Steps = dict[int, list[tuple[Any, int, int, Any]]]
+"""Per layer (run of car slots drawn in one write): offsets in the pictures' buffer (the spare
+element: none) of the pixels of paths ``lo:hi``, ``[paths, ...]`` with as many per path (count
+None), or 1-D, path after path, ``count [paths]`` of each."""
 
 
 def chord_count(max_length: float, max_curvature: float, tolerance: float) -> int:
@@ -115,7 +116,7 @@ def paint_paths(x_: Any, flat: Any, base: Any, center: Any, path: Any, label: An
                 bounds = x_.searchsorted(slot_i, starts).tolist()  # each layer's paths
                 rows, at = path[view_i, slot_i], (center[view_i], base[view_i])  # [M, 5], their views
                 if chosen is along:
-                    pixels = _column_runs(x_, rows, *at, view, path_time, chords, spare, bounds)
+                    pixels = _column_runs(x_, rows, *at, view, path_time, chords, bounds)
                 else:
                     pixels = _chord_lines(x_, rows, *at, None, view, path_time, chords, spare, bounds, None,
                                           index_i)
@@ -132,11 +133,12 @@ def paint_paths(x_: Any, flat: Any, base: Any, center: Any, path: Any, label: An
         parts.append((pixels, values[x_.clip(shown, 0, None)]))
     for c in range(len(layers)):  # in draw order
         for pixels, shade in parts:
-            for index, lo, hi in pixels.get(c, ()):  # index [paths lo:hi, ...]
-                if hi - lo == 1:
-                    flat[index] = shade[lo]
+            for index, lo, hi, count in pixels.get(c, ()):  # index [paths lo:hi, ...] (count: 1-D)
+                if hi - lo == 1 or bool((shade[lo:hi] == shade[lo]).all()):  # one shade
+                    flat[index.reshape(-1)] = shade[lo]
                 else:
-                    flat[index.reshape(-1)] = x_.repeat(shade[lo:hi], x_.size(index[0]))
+                    flat[index.reshape(-1)] = x_.repeat(shade[lo:hi], x_.size(index[0]) if count is None
+                                                        else count)
 
 
 def _passes(x_: Any, need: Any, bounds: list[int], per_step: int) -> list[tuple[int, int, int]]:
@@ -168,11 +170,11 @@ def _split(out: Steps, index: Any, bounds: list[int], start: int, end: int) -> N
     for c in range(start, end):
         lo, hi = bounds[c], bounds[c + 1]
         if hi > lo:
-            out.setdefault(c, []).append((index[lo - first: hi - first], lo, hi))
+            out.setdefault(c, []).append((index[lo - first: hi - first], lo, hi, None))
 
 
 def _column_runs(x_: Any, rows: Any, center: Any, base: Any, view: Any, path_time: float, chords: int,
-                 spare: int, bounds: list[int]) -> Steps:
+                 bounds: list[int]) -> Steps:
     """The pixels of the paths of cars straight along the road (heading and curvature 0),
     ``rows [M, 5]``, in their pictures (centred at ``center [M, 2]``, at ``base [M]`` in the
     buffer; ``bounds``: each layer's paths): each a run of rows in one column, the pixels its
@@ -186,15 +188,20 @@ def _column_runs(x_: Any, rows: Any, center: Any, base: Any, view: Any, path_tim
     col = x_.floor(0.5 * view.width + x_.f32(rel[:, 1]) / view.lateral_scale)
     top = x_.clip(x_.floor(0.5 * view.height - x_.f32(tip) / lon), 0.0, None)
     bottom = x_.clip(x_.floor(0.5 * view.height - x_.f32(rel[:, 0]) / lon), None, view.height - 1.0)
-    # the rows of each run after its top (< 0: none)
-    last = x_.where((col >= 0) & (col < view.width), bottom - top, -1.0)
-    start = x_.i64(top * view.width + col) + base
+    # the rows of each run (0: none), from its top down: exactly its pixels, no spare writes
+    count = x_.i64(x_.where((col >= 0) & (col < view.width) & (bottom >= top), bottom - top + 1, 0.0))
+    # [M + 1] where each run's pixels start when all runs' pixels are laid end to end
+    first = x_.cat([count[:1] * 0, x_.cumsum(count, 0)], 0)
+    ends = first[bounds].tolist()  # each layer's
+    if ends[-1] == 0:
+        return {}
+    # pixel p of run r: start_r + (p - first_r) * width, as one repeat and one arange
+    start = x_.i64(top * view.width + col) + base - first[:-1] * view.width
+    index = x_.repeat(start, count) + x_.arange(ends[-1], base.device if x_.is_torch else None) * view.width
     out: Steps = {}
-    for first, end, m in _passes(x_, last, bounds, 1):
-        lo, hi = bounds[first], bounds[end]
-        i = x_.arange(m, base.device if x_.is_torch else None)
-        index = x_.where(i <= last[lo:hi, None], start[lo:hi, None] + i * view.width, spare)  # [paths, m]
-        _split(out, index, bounds, first, end)
+    for c, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+        if ends[c + 1] > ends[c]:
+            out[c] = [(index[ends[c]: ends[c + 1]], lo, hi, count[lo:hi])]
     return out
 
 
@@ -241,8 +248,8 @@ def _chord_lines(x_: Any, rows: Any, center: Any, base: Any, ok: Any, view: Any,
     if ok is not None:
         inside = inside & ok
     tips = x_.where(inside, x_.i64(tip[0] * width + tip[1]) + base, spare)
-    out: Steps = {c: [(tips[lo_:hi_], lo_, hi_)] for c, (lo_, hi_) in enumerate(zip(bounds[:-1], bounds[1:],
-                                                                                 strict=True)) if hi_ > lo_}
+    out: Steps = {c: [(tips[lo_:hi_], lo_, hi_, None)]
+                  for c, (lo_, hi_) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)) if hi_ > lo_}
     passes = ([(0, len(bounds) - 1, steps)] if bounds[-1] else []) if steps is not None else \
         _passes(x_, (last - first).reshape(-1), [b * chords for b in bounds], 1)
     for start, stop, n in passes:
