@@ -104,31 +104,45 @@ def _range(meta: Any) -> str:
 
 
 def _comments_of(path: Path) -> dict[str, str]:
-    """Key -> the comment on its line, else the full-line comment right above it."""
+    """Dotted key path (by indentation) -> the comment on its line, else the full-line comment
+    right above it."""
     out: dict[str, str] = {}
-    above = ""
+    above, stack = "", []  # stack: (indent, key) of the keys that enclose the line
     for line in path.read_text().splitlines():
         if line.lstrip().startswith("#"):
             above = line.lstrip("# ").strip()
             continue
-        m = re.match(r"\s*([A-Za-z_]\w*):([^#]*)(?:#\s*(.+))?$", line)
-        if m and m.group(1) not in out and (m.group(3) or above):
-            out[m.group(1)] = (m.group(3) or above).strip()
+        m = re.match(r"(\s*)([A-Za-z_]\w*):([^#]*)(?:#\s*(.+))?$", line)
+        if m:
+            indent = len(m.group(1))
+            while stack and stack[-1][0] >= indent:
+                stack.pop()
+            key = ".".join([k for _, k in stack] + [m.group(2)])
+            stack.append((indent, m.group(2)))
+            if key not in out and (m.group(4) or above):
+                out[key] = (m.group(4) or above).strip()
         above = ""
     return out
 
 
 @cache
 def _yaml_comments(command: str, group: str, anywhere: bool) -> dict[str, str]:
-    """Key -> its YAML comment, from ``conf/<command>.yaml``, then ``conf/<group>/*.yaml``, then
-    (``anywhere``: for untyped keys) any other file under ``conf/``; the first file that has one."""
+    """Full key name (``batched.rounds``) -> its YAML comment, from ``conf/<command>.yaml``, then
+    ``conf/<group>/*.yaml`` (its keys under ``<group>.``); and a key's last part (``rounds``) ->
+    the first comment of a key so named in those files, then (``anywhere``: for untyped keys)
+    in any other file under ``conf/``."""
     out: dict[str, str] = {}
-    paths = [CONF_DIR / f"{command}.yaml", *sorted((CONF_DIR / group).glob("*.yaml")),
-             *(sorted(CONF_DIR.rglob("*.yaml")) if anywhere else [])]
-    for path in paths:
+    files = [(CONF_DIR / f"{command}.yaml", ""),
+             *((p, f"{group}.") for p in sorted((CONF_DIR / group).glob("*.yaml")))]
+    others = [(p, "") for p in sorted(CONF_DIR.rglob("*.yaml"))] if anywhere else []
+    for path, prefix in files:
         if path.is_file():
             for key, text in _comments_of(path).items():
-                out.setdefault(key, text)
+                out.setdefault(prefix + key, text)
+    for path, _ in files + others:  # by the last part, where the full name has none
+        if path.is_file():
+            for key, text in _comments_of(path).items():
+                out.setdefault("*" + key.rsplit(".", 1)[-1], text)
     return out
 
 
@@ -182,7 +196,8 @@ def _rows(command: str, node: DictConfig, prefix: str, rows: list[tuple[str, ...
             rng = ""
             doc = ""
         if not doc:
-            doc = _yaml_comments(command, name.split(".")[0], f is None).get(str(key), "")
+            comments = _yaml_comments(command, name.split(".")[0], f is None)
+            doc = comments.get(name) or comments.get(f"*{key}", "")
         rows.append((name, type_, default, rng, doc))
 
 

@@ -567,6 +567,7 @@ class BatchedBench:
     seed: int = spec(ge=0, le=SEED_MAX)
     path_time: float = spec(ge=0, le=10)
     vec_sizes: list[int] = spec(ge=1)
+    rounds: int = spec(ge=1)
 
 
 @dataclass

@@ -189,6 +189,7 @@ ROWS = [
     ("bench", ["opponents.vehicles_count=0"], "opponents.vehicles_count"),
     ("bench", ["batched.sizes=[0]"], "batched.sizes"),
     ("bench", ["batched.seconds=0"], "batched.seconds"),
+    ("bench", ["batched.rounds=0"], "batched.rounds"),
     ("bench", ["learner.batch_sizes=[0]"], "learner.batch_sizes"),
     ("bench", ["learner.seconds=0"], "learner.seconds"),
     ("bench", ["memory.transitions=0"], "memory.transitions"),

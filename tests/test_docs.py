@@ -222,6 +222,19 @@ def test_configuration_reference_is_generated():
         "docs/configuration.md is stale: python -m memrl.configs --markdown > docs/configuration.md")
 
 
+def test_configuration_reference_gives_each_key_its_own_comment(tmp_path):
+    """Keys of one name under two groups keep their own comments (the dotted path by
+    indentation); a full-line comment above a key is its comment; nested keys and list lines."""
+    from memrl.config_reference import _comments_of
+
+    yaml = tmp_path / "c.yaml"
+    yaml.write_text("learner:   # the learner\n  rounds: 3   # interleaved rounds\n  sizes:\n    - 1\n"
+                    "group:\n  # the arms alternate\n  rounds: 2\n  inner:\n    rounds: 1  # deepest\n"
+                    "top: 1\n")
+    assert _comments_of(yaml) == {"learner": "the learner", "learner.rounds": "interleaved rounds",
+                                  "group.rounds": "the arms alternate", "group.inner.rounds": "deepest"}
+
+
 def code_block_after(page: str, marker: str) -> str:
     """The fenced code block right after ``<!-- test:<marker> -->`` in ``page``."""
     text = (ROOT / page).read_text()
