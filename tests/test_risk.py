@@ -117,6 +117,26 @@ def test_the_agent_acts_through_the_critic_in_training_and_evaluation():
     assert int(decided[0]) != int(net.base(x)[0].argmax())
 
 
+@pytest.mark.parametrize("shared", [True, False])
+def test_a_shared_trunk_critic_reads_the_base_convs_and_its_cross_entropy_trains_them(shared):
+    from memrl.modules.qnet import build_qnet
+
+    torch.manual_seed(0)
+    net = build_qnet({**RISK, "shared_trunk": shared})
+    x = fixed_input()
+    convs = [m for m in net.critic.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert (len(convs) == 0) == shared  # shared: a hidden and an output layer on the base's convs
+    logits = net.risk_logits(x)
+    if shared:
+        assert torch.equal(logits, net.critic(net.base.conv_features(x)))
+    out = [m for m in net.critic.modules() if isinstance(m, torch.nn.Linear)][-1]
+    assert float((out.bias.detach() - math.log(0.01 / 0.99)).abs().max()) < 1e-6  # the prior either way
+    torch.nn.functional.binary_cross_entropy_with_logits(logits, torch.ones_like(logits)).backward()
+    trained = [p.grad is not None and float(p.grad.abs().sum()) > 0 for p in net.base.features.parameters()]
+    assert all(trained) if shared else not any(trained)
+    assert all(p.grad is None for p in net.base.head.parameters())  # the task head's own layers: not
+
+
 RESUMABLE = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3"]
 
 
@@ -126,6 +146,8 @@ RESUMABLE = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3"]
     ["network=risk", "network.base._target_=memrl.modules.hlgauss.HLGaussQNetwork",
      "+mode=A", "mode.example.episodes=2", "+network.base.atoms=11", "+network.base.v_min=null",
      "+network.base.v_max=null", "+network.base.sigma=0.75", "network.bootstrap=safest"],
+    # on the base's conv trunk, no mask: the auxiliary crash-prediction task alone
+    ["network=risk", "network.shared_trunk=true", "network.threshold=1.0"],
 ])
 def test_a_risk_critic_run_trains_resumes_exactly_and_acts_safely_from_its_final_pt(
         compose_cfg, tmp_path, demos, monkeypatch, overrides):

@@ -90,17 +90,20 @@ class QNetwork(nn.Module):
     """Its ``network`` node's keys, ranges and cross-key check (:func:`check_network`): a
     subclass with keys of its own names its own schema here."""
 
+    def conv_features(self, pixels: torch.Tensor) -> torch.Tensor:
+        """The conv trunk's float32 output ``[B', C, h, w]`` of uint8 ``pixels [..., frames, H,
+        W]``, with the leading dims flattened into ``B'`` (what the head reads)."""
+        x = pixels.reshape(-1, *pixels.shape[-3:]).to(torch.float32).div_(255.0)
+        if self.conv_dtype is None:
+            return self.features(x)
+        with torch.autocast(x.device.type, dtype=self.conv_dtype):
+            features = self.features(x)
+        return features.float()
+
     def trunk(self, pixels: torch.Tensor) -> torch.Tensor:
         """The head's output ``[B', ...]`` of uint8 ``pixels [..., frames, H, W]``, with the
         leading dims flattened into ``B'``."""
-        x = pixels.reshape(-1, *pixels.shape[-3:]).to(torch.float32).div_(255.0)
-        if self.conv_dtype is None:
-            features = self.features(x)
-        else:
-            with torch.autocast(x.device.type, dtype=self.conv_dtype):
-                features = self.features(x)
-            features = features.float()
-        return self.head(features)
+        return self.head(self.conv_features(pixels))
 
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         """Q-values ``[..., n_actions]`` (what acting, evaluation and deployment use)."""

@@ -29,7 +29,7 @@ from torch import nn
 
 from memrl.fields import spec
 from memrl.modules.network_config import NetworkConfig, check_network
-from memrl.modules.qnet import TABLE1, QNetwork, head_td_term, network_for_task
+from memrl.modules.qnet import TABLE1, QNetwork, head_td_term, hidden_layer, network_for_task
 
 BOOTSTRAPS = ("policy", "safest")
 
@@ -58,6 +58,11 @@ class RiskConfig(NetworkConfig):
     """A fresh critic's risk: its output bias starts at logit(prior), so before it has learned
     anything it allows every action (prior below ``threshold``) and the agent acts as its task
     head does, as stage 2 starting from a stage 1 without a critic needs."""
+    shared_trunk: bool = False
+    """The critic reads the base head's conv trunk (its own hidden and output layers on the
+    base's conv features; ``channels`` and ``layernorm_convs`` are then the base's): its
+    cross-entropy also trains the convs the task head reads, an auxiliary crash-prediction task.
+    With ``threshold=1`` no action is ever masked: the auxiliary task alone."""
 
     @staticmethod
     def check(node: Any, prefix: str = "network.") -> None:
@@ -74,13 +79,24 @@ class RiskQNetwork(nn.Module):
                  channels: int = 16, hidden: int = 256, layernorm: bool = False,
                  layernorm_convs: bool = False, pool_first: bool = True, gamma: float = 0.97,
                  threshold: float = 0.1, weight: float = 1.0, bootstrap: str = "policy",
-                 prior: float = 0.01) -> None:
+                 prior: float = 0.01, shared_trunk: bool = False) -> None:
         super().__init__()
         if not isinstance(base, nn.Module):
             raise TypeError(f"RiskQNetwork: base must be a network, got {type(base).__name__}")
         self.base = base
-        self.critic = QNetwork(frames, size, n_actions, channels=channels, hidden=hidden,
-                               layernorm=layernorm, layernorm_convs=layernorm_convs, pool_first=pool_first)
+        self.shared_trunk = bool(shared_trunk)
+        if self.shared_trunk:
+            if not isinstance(base, QNetwork):
+                raise TypeError(f"RiskQNetwork: shared_trunk needs a base with Table I's conv trunk (a "
+                                f"QNetwork), got {type(base).__name__}")
+            side = size // 8  # three 2x2 pools, as the base's
+            self.critic: nn.Module = nn.Sequential(
+                nn.Flatten(), *hidden_layer(int(base.arch["channels"]) * side * side, hidden, layernorm),
+                nn.Linear(hidden, n_actions))
+        else:
+            self.critic = QNetwork(frames, size, n_actions, channels=channels, hidden=hidden,
+                                   layernorm=layernorm, layernorm_convs=layernorm_convs,
+                                   pool_first=pool_first)
         self.frames, self.threshold = int(frames), float(threshold)
         self.gamma_risk = float(gamma)
         """The critic's discount (its TD term's; the evaluation's risk calibration reads it)."""
@@ -95,7 +111,8 @@ class RiskQNetwork(nn.Module):
     @conv_dtype.setter
     def conv_dtype(self, value: torch.dtype | None) -> None:  # the learner's precision, for both trunks
         self.base.conv_dtype = value
-        self.critic.conv_dtype = value
+        if not self.shared_trunk:
+            self.critic.conv_dtype = value
 
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         """The base head's Q-values ``[..., A]`` (what its TD term and ``DQNLoss`` train)."""
@@ -103,7 +120,9 @@ class RiskQNetwork(nn.Module):
 
     def risk_logits(self, pixels: torch.Tensor) -> torch.Tensor:
         """The critic's logits ``[..., A]``; Q_risk = their sigmoid."""
-        return self.critic(pixels)
+        if not self.shared_trunk:
+            return self.critic(pixels)
+        return self.critic(self.base.conv_features(pixels)).reshape(*pixels.shape[:-3], -1)
 
     def outputs(self, pixels: torch.Tensor) -> dict[str, torch.Tensor]:
         """The base's outputs (``"q"`` and its own), ``"risk"`` ``[..., A]`` in [0, 1] and its
