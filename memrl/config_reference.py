@@ -134,15 +134,15 @@ def _yaml_comments(command: str, group: str, anywhere: bool) -> dict[str, str]:
     out: dict[str, str] = {}
     files = [(CONF_DIR / f"{command}.yaml", ""),
              *((p, f"{group}.") for p in sorted((CONF_DIR / group).glob("*.yaml")))]
-    others = [(p, "") for p in sorted(CONF_DIR.rglob("*.yaml"))] if anywhere else []
-    for path, prefix in files:
-        if path.is_file():
-            for key, text in _comments_of(path).items():
+    others = [(p, None) for p in sorted(CONF_DIR.rglob("*.yaml"))] if anywhere else []
+    parsed = [(prefix, _comments_of(path)) for path, prefix in files + others if path.is_file()]
+    for prefix, comments in parsed:
+        for key, text in comments.items():
+            if prefix is not None:
                 out.setdefault(prefix + key, text)
-    for path, _ in files + others:  # by the last part, where the full name has none
-        if path.is_file():
-            for key, text in _comments_of(path).items():
-                out.setdefault("*" + key.rsplit(".", 1)[-1], text)
+    for _, comments in parsed:  # by the last part, where the full name has none
+        for key, text in comments.items():
+            out.setdefault("*" + key.rsplit(".", 1)[-1], text)
     return out
 
 

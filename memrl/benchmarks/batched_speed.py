@@ -99,14 +99,19 @@ def _vec_blocks(config: dict[str, Any], n: int, device: torch.device, seed: int)
     return _Blocks(lambda: vec.step(rng.integers(9, size=n)), n, close=vec.close)
 
 
-def _gym_blocks(config: dict[str, Any], seed: int) -> _Blocks:
-    """The reference gym env giving 4 stacked frames as the batched engine keeps them, random
-    actions, reset when done (20 warm-up steps: first renders allocate surfaces and caches)."""
+def _reference_env(config: dict[str, Any]) -> gym.Env:
+    """The reference gym env, giving 4 stacked frames as the batched engine keeps them."""
     from memrl.envs import ENV_ID, register_envs
 
     register_envs()
-    env = gym.wrappers.FrameStackObservation(
+    return gym.wrappers.FrameStackObservation(
         gym.wrappers.ReshapeObservation(gym.make(ENV_ID, config=config), (84, 84)), 4)
+
+
+def _gym_blocks(config: dict[str, Any], seed: int) -> _Blocks:
+    """The reference gym env (:func:`_reference_env`), random actions, reset when done (20
+    warm-up steps, as :func:`_time_gym`: first renders allocate surfaces and caches)."""
+    env = _reference_env(config)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
 
@@ -115,7 +120,7 @@ def _gym_blocks(config: dict[str, Any], seed: int) -> _Blocks:
         if term or trunc:
             env.reset()
 
-    for _ in range(17):
+    for _ in range(17):  # and 3 more in _Blocks
         step()
     return _Blocks(step, 1, close=env.close)
 
@@ -137,12 +142,8 @@ def _median(values: list[float]) -> float:
 
 
 def _reference(config: dict[str, Any], steps: int, seed: int) -> float:
-    """The reference gym env, giving 4 stacked frames as the batched engine keeps them."""
-    from memrl.envs import ENV_ID, register_envs
-
-    register_envs()
-    env = gym.wrappers.FrameStackObservation(
-        gym.wrappers.ReshapeObservation(gym.make(ENV_ID, config=config), (84, 84)), 4)
+    """Steps/s of the reference gym env (:func:`_reference_env`) over ``steps`` steps."""
+    env = _reference_env(config)
     rate, _ = _time_gym(env, steps, seed)
     env.close()
     return rate
@@ -156,8 +157,6 @@ def run(sizes: list[int], gpu_sizes: list[int], seconds: float = 3.0, reference_
     ``path_time``, of the engine drawing every car's path to the same engine without it; at
     ``vec_sizes``, of ``gym.make_vec`` to the reference gym env on the same frames: those two
     side by side, in ``rounds`` turns)."""
-    if int(rounds) < 1:
-        raise ValueError(f"batched.rounds={rounds}: at least 1")
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -211,7 +210,6 @@ def _run(sizes: list[int], gpu_sizes: list[int], seconds: float, reference_steps
                    "constant": _engine_blocks(constant, n, dev, seed)}, rounds, seconds)
         else:
             res.setdefault("constant", {})[str(n)] = _time_batched(constant, n, seconds, dev, seed)
-    res["constant"] = {str(n): res["constant"][str(n)] for n in all_sizes}  # in size order
     res["constant_ratio_to_reference"] = {n: r / ref for n, r in res["constant"].items()}
     res["reset"] = ("finished envs reset inside the step (step(auto_reset=True): their last and first "
                     "frames drawn in one call); constant_reset_after_step: reset() called after step()")

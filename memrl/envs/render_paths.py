@@ -134,7 +134,8 @@ def paint_paths(x_: Any, flat: Any, base: Any, center: Any, path: Any, label: An
     for c in range(len(layers)):  # in draw order
         for pixels, shade in parts:
             for index, lo, hi, count in pixels.get(c, ()):  # index [paths lo:hi, ...] (count: 1-D)
-                if hi - lo == 1 or bool((shade[lo:hi] == shade[lo]).all()):  # one shade
+                # one shade (checked on the CPU only: on an accelerator it would sync the host)
+                if hi - lo == 1 or (steps is None and bool((shade[lo:hi] == shade[lo]).all())):
                     flat[index.reshape(-1)] = shade[lo]
                 else:
                     flat[index.reshape(-1)] = x_.repeat(shade[lo:hi], x_.size(index[0]) if count is None

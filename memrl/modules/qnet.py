@@ -75,7 +75,9 @@ class QNetwork(nn.Module):
         side = size
         for _ in range(3):
             side //= 2
-        self.head = self.make_head(channels * side * side, hidden, n_actions, layernorm)
+        self.conv_size = channels * side * side
+        """Features the conv trunk gives the head (:meth:`conv_features`, flattened)."""
+        self.head = self.make_head(self.conv_size, hidden, n_actions, layernorm)
 
     def make_head(self, features: int, hidden: int, n_actions: int, layernorm: bool) -> nn.Module:
         """The part after the conv trunk: flattened features -> Q-values ``[B, n_actions]``."""

@@ -89,10 +89,8 @@ class RiskQNetwork(nn.Module):
             if not isinstance(base, QNetwork):
                 raise TypeError(f"RiskQNetwork: shared_trunk needs a base with Table I's conv trunk (a "
                                 f"QNetwork), got {type(base).__name__}")
-            side = size // 8  # three 2x2 pools, as the base's
             self.critic: nn.Module = nn.Sequential(
-                nn.Flatten(), *hidden_layer(int(base.arch["channels"]) * side * side, hidden, layernorm),
-                nn.Linear(hidden, n_actions))
+                nn.Flatten(), *hidden_layer(base.conv_size, hidden, layernorm), nn.Linear(hidden, n_actions))
         else:
             self.critic = QNetwork(frames, size, n_actions, channels=channels, hidden=hidden,
                                    layernorm=layernorm, layernorm_convs=layernorm_convs,
