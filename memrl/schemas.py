@@ -155,6 +155,12 @@ def check_train(cfg: DictConfig) -> None:
     from memrl.losses import td_term
 
     td_term(cfg.agent, cfg.network)  # the head's TD term takes this agent config (refusals name the key)
+    from memrl.modules.risk import proposes
+
+    if proposes(cfg.network) and cfg.agent.exploration == "boltzmann":
+        raise config_error("network.task_action", "proposed needs the task head's own proposal, and "
+                           "agent.exploration=boltzmann draws from the masked values (use another "
+                           "exploration)")
     if cfg.self_play_every and cfg.env.opponent.type == "constant":
         raise config_error("self_play_every", "snapshots join the learned cars' pool; it needs "
                            "opponent=learned or opponent=mixed (or self_play_every=0)")

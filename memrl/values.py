@@ -67,11 +67,12 @@ class QFunctions:
             self.batch_q = self._batch_outputs["q"]
         return self._batch_outputs
 
-    def view(self, net: nn.Module) -> QFunctions:
+    def view(self, net: nn.Module, batch: TensorDictBase | None = None) -> QFunctions:
         """The same learner seen through ``net``, a part of :attr:`qnet` (a crash-risk critic's
         value head, :mod:`memrl.modules.risk`): its outputs, online and target, and its forward
-        for the hooks; a fresh :attr:`batch_q` and :attr:`td_error`."""
-        return QFunctions(self._loss, net, self.batch, keep_batch_q=self._keep,
+        for the hooks; a fresh :attr:`batch_q` and :attr:`td_error`; on ``batch`` (default this
+        one; same pixels, e.g. other actions)."""
+        return QFunctions(self._loss, net, self.batch if batch is None else batch, keep_batch_q=self._keep,
                           teacher=self.teacher, teacher_scale=self.teacher_scale)
 
     def target_params(self) -> Any:

@@ -141,3 +141,39 @@ def test_ez_speed_at_epsilon_zero_is_greedy():
     explore.step(1)
     greedy = torch.tensor([0, 4, 8])
     assert explore(TensorDict({"action": greedy.clone()}, [3]))["action"].tolist() == [0, 4, 8]
+
+
+@pytest.mark.parametrize("kind", ["epsilon", "speed_only", "ez_greedy", "ez_speed"])
+def test_a_proposal_is_what_the_same_draws_give_another_greedy_action(kind):
+    """``propose(g)`` after a step on greedy actions ``a`` equals that step run on ``g`` from
+    the same generator and module state (the task head's proposal before a risk critic's mask)."""
+    n = 16
+    first, other = torch.zeros(n, dtype=torch.long), torch.arange(n) % 9
+
+    def fresh():
+        explore = make_exploration(0.5, 0.5, 10, kind=kind, num_envs=n, ez_max_duration=5)
+        torch.manual_seed(3)
+        return explore
+
+    a, proposals, explored = fresh(), [], []
+    for t in range(12):  # repeats under way, started and ended
+        executed = a(td(n, step_count=torch.full((n,), t + 1)).set("action", first.clone()))["action"]
+        proposals.append(a.propose(other))
+        explored.append(executed != first)
+        # explored envs: the same draw (ez_speed: the same speed change; a draw equal to
+        # ``first`` is not told apart)
+        part = (lambda x: x // 3) if kind == "ez_speed" else (lambda x: x)
+        assert torch.equal(part(proposals[-1][explored[-1]]), part(executed[explored[-1]]))
+    b = fresh()  # the same generator state from the start
+    for t in range(12):
+        direct = b(td(n, step_count=torch.full((n,), t + 1)).set("action", other.clone()))["action"]
+        assert torch.equal(proposals[t], direct), t
+    explored = torch.stack(explored)
+    assert bool(explored.any()) and not bool(explored.all())
+
+
+def test_boltzmann_has_no_proposal_before_the_mask():
+    explore = make_exploration(1.0, 1.0, 10, kind="boltzmann")
+    explore(td(4, q=torch.zeros(4, 9)))
+    with pytest.raises(ValueError, match="boltzmann draws from the masked values"):
+        explore.propose(torch.zeros(4, dtype=torch.long))

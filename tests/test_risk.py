@@ -55,7 +55,10 @@ def moved_learner(network: dict, **agent) -> Learner:
     torch.manual_seed(0)
     learner = Learner(AgentConfig(gamma=0.95, target_update_interval=10_000, precision="float32", **agent),
                       network=network)
-    learner.update(batch(seed=1))  # online and target apart
+    first = batch(seed=1)
+    if network.get("task_action") == "proposed":
+        first["task_action"] = first["action"].clone()
+    learner.update(first)  # online and target apart
     return learner
 
 
@@ -84,6 +87,65 @@ def test_the_risk_term_is_the_base_td_term_plus_the_critics_cross_entropy(bootst
         bce = -(y * torch.log(p) + (1 - y) * torch.log(1 - p)).mean()
     assert crash.any() and not crash.all()
     assert total == pytest.approx(base + 2.0 * float(bce), rel=1e-5)
+
+
+def test_a_task_head_that_learns_from_its_proposals_takes_task_action_and_the_critic_the_executed():
+    learner = moved_learner({**RISK, "task_action": "proposed"})
+    [term] = learner.terms
+    assert term.task_action == "proposed"
+    net: RiskQNetwork = learner.qnet
+    b = batch(seed=2)
+    b["task_action"] = (b["action"] + 1 + torch.arange(len(b)).reshape(b["action"].shape) % 3) % 9
+    assert bool((b["task_action"] != b["action"]).all())
+    proposed = b.clone().set("action", b["task_action"].clone())
+    with torch.no_grad():
+        total = float(learner.loss(b.clone()))
+        on_proposed = learner.q_functions(proposed.clone())
+        base_proposed = float(TDTerm()(proposed.clone(), on_proposed.view(net.base)))
+        base_executed = float(TDTerm()(b.clone(), learner.q_functions(b.clone()).view(net.base)))
+        q = learner.q_functions(b)
+        bce = float(term(b.clone(), q)) - base_proposed  # the critic's part, on whichever action
+        with q.target_params():
+            target = torch.sigmoid(net.critic(b["next", "pixels"]))
+        a_next = safe_choice(net.base(b["next", "pixels"]), torch.sigmoid(net.critic(b["next", "pixels"])),
+                             0.3).argmax(-1)
+        y = torch.where(b["next", "terminated"].reshape(-1), torch.tensor(1.0),
+                        0.9 * target[torch.arange(len(b)), a_next])
+        p = torch.sigmoid(net.critic(b["pixels"]))[torch.arange(len(b)), b["action"].reshape(-1)]
+        executed_bce = float(-(y * torch.log(p) + (1 - y) * torch.log(1 - p)).mean())
+    assert base_proposed != pytest.approx(base_executed, rel=1e-3)  # the two actions' TD terms differ
+    assert total == pytest.approx(base_proposed + executed_bce, rel=1e-5)
+    assert bce == pytest.approx(executed_bce, rel=1e-4)
+    with pytest.raises(KeyError, match="has no 'task_action'"):
+        learner.loss(batch(seed=2))
+
+
+@pytest.mark.parametrize("eps", [0.0, 1.0])
+def test_the_acting_loop_stores_the_task_heads_proposal_beside_the_masked_action(compose_cfg, tmp_path, eps):
+    from memrl.dqn.loop import Trainer
+    from tests.helpers import TINY
+
+    cfg = compose_cfg("train", [*TINY, "network=risk", "network.task_action=proposed",
+                                "network.threshold=0.5", "agent.precision=float32",
+                                f"agent.eps_start={eps}", f"agent.eps_end={eps}"])
+    trainer = Trainer(cfg, tmp_path / "run")
+    net: RiskQNetwork = trainer.rounds.acting_net.module[0].module.net  # the acting copy (overlap mode)
+    x = fixed_input()
+    with torch.no_grad():
+        greedy = net.base(x).argmax(-1)
+        torch.nn.init.constant_(net.critic.head[-1].bias, 0.0)
+        net.critic.head[-1].bias[greedy[0]] = 20.0  # the first stack's best task action: masked
+        masked = net.decide(x).argmax(-1)
+    td = TensorDict({"pixels": x}, [len(x)])
+    trainer._act(td, frames=10_000)  # past the warm-up
+    assert int(masked[0]) != int(greedy[0])
+    if eps == 0:  # greedy: the task head proposed its best action, the mask's choice was executed
+        assert torch.equal(td["action"], masked) and torch.equal(td["task_action"], greedy)
+    else:  # every env explores: the one draw was proposed and executed
+        assert torch.equal(td["task_action"], td["action"])
+    td = TensorDict({"pixels": x}, [len(x)])
+    trainer._act(td, frames=0)  # the warm-up's random actions: proposed as executed
+    assert torch.equal(td["task_action"], td["action"])
 
 
 def test_only_the_critic_learns_from_its_term_and_the_base_only_from_its_own():
@@ -148,6 +210,9 @@ RESUMABLE = ["env.num_envs=4", "total_episodes=12", "checkpoint_every=3"]
      "+network.base.v_max=null", "+network.base.sigma=0.75", "network.bootstrap=safest"],
     # on the base's conv trunk, no mask: the auxiliary crash-prediction task alone
     ["network=risk", "network.shared_trunk=true", "network.threshold=1.0"],
+    # the task head learns from its proposals, in mode A (the demos get theirs) with ez_speed
+    ["network=risk", "network.task_action=proposed", "network.threshold=0.02", "+mode=A",
+     "mode.example.episodes=2", "agent.exploration=ez_speed"],
 ])
 def test_a_risk_critic_run_trains_resumes_exactly_and_acts_safely_from_its_final_pt(
         compose_cfg, tmp_path, demos, monkeypatch, overrides):
@@ -177,6 +242,10 @@ def test_a_risk_critic_run_trains_resumes_exactly_and_acts_safely_from_its_final
     (["network=risk", "network.bootstrap=future"],
      "config 'network.bootstrap': must be one of policy, safest"),
     (["network=risk", "network.base.channels=0"], "config 'network.base.channels': must be >= 1, got 0"),
+    (["network=risk", "network.task_action=chosen"],
+     "config 'network.task_action': must be one of executed, proposed"),
+    (["network=risk", "network.task_action=proposed", "agent.exploration=boltzmann"],
+     "config 'network.task_action': proposed needs the task head's own proposal"),
 ])
 def test_bad_risk_values_are_refused_at_start_naming_the_key(compose_cfg, overrides, message):
     from memrl.errors import one_line

@@ -13,9 +13,15 @@ TRANSITION_KEYS: tuple = (
 """Keys a stored transition has: stacked uint8 pixels ``[4, 84, 84]`` before and after, the
 action index, reward ``[1]``, done flags ``[1]`` and the ``is_demo`` flag."""
 
+TASK_ACTION_KEY = "task_action"
+"""An optional key: the action a crash-risk critic's task head proposed before the mask (runs
+with ``network.task_action=proposed`` store it with every transition; :mod:`memrl.modules.risk`)."""
+
 
 def to_transitions(td: TensorDictBase, is_demo: bool = False) -> TensorDictBase:
-    """Keep only :data:`TRANSITION_KEYS` of env-step data (a ``[T]`` rollout) and set ``is_demo``."""
-    out = td.select(*(k for k in TRANSITION_KEYS if k != "is_demo"), strict=True)
+    """Keep only :data:`TRANSITION_KEYS` (and :data:`TASK_ACTION_KEY` where ``td`` has it) of
+    env-step data (a ``[T]`` rollout) and set ``is_demo``."""
+    optional = (TASK_ACTION_KEY,) if TASK_ACTION_KEY in td.keys() else ()
+    out = td.select(*(k for k in TRANSITION_KEYS if k != "is_demo"), *optional, strict=True)
     out.set("is_demo", torch.full(td.batch_size, is_demo, dtype=torch.bool))
     return out

@@ -17,7 +17,9 @@
   ``temperature_start`` to ``temperature_end`` over ``eps_decay_frames`` env steps.
 
 Every module keeps its schedule (and ``ez_greedy`` / ``ez_speed`` their per-env repeats) in
-buffers, so the trainer's checkpoints resume it exactly.
+buffers, so the trainer's checkpoints resume it exactly. Each but ``boltzmann`` can apply its last
+step's draws to another greedy action (``propose``): what a crash-risk critic's task head
+proposed before the mask (``network.task_action=proposed``).
 """
 
 from __future__ import annotations
@@ -60,8 +62,19 @@ class AlwaysExploring(EGreedyModule):
         action = tensordict.get(self.action_key)
         explore = torch.rand(tensordict.shape, device=self.eps.device) < self.eps
         explore = explore.reshape(explore.shape + (1,) * (action.ndim - explore.ndim))
-        tensordict.set(self.action_key, torch.where(explore, self._random(action), action))
+        drawn = self._random(action)
+        self._draws = (explore, drawn)
+        tensordict.set(self.action_key, torch.where(explore, drawn, action))
         return tensordict
+
+    def propose(self, greedy: torch.Tensor) -> torch.Tensor:
+        """The last :meth:`forward`'s draws applied to ``greedy`` (the shape of its actions)
+        instead of the action it was given: the same envs explore, with the same draws."""
+        draws = getattr(self, "_draws", None)
+        if draws is None:
+            raise RuntimeError(f"{type(self).__name__}.propose before any step")
+        explore, drawn = draws
+        return torch.where(explore, drawn, greedy.reshape(drawn.shape))
 
 
 class SpeedOnlyExploring(AlwaysExploring):
@@ -102,14 +115,25 @@ class EzGreedy(AlwaysExploring):
         self.repeat.copy_(torch.where(start, torch.randint(self.choices, (n,), device=flat.device),
                                       self.repeat))
         self.remaining.copy_(torch.where(start, length, self.remaining))
-        out = torch.where(self.remaining > 0, self._held(flat), flat)
+        held = self.remaining > 0
+        self._draws = (held, self.repeat.clone())
+        out = torch.where(held, self._held(flat), flat)
         self.remaining.sub_(1).clamp_(min=0)
         tensordict.set(self.action_key, out.reshape(greedy.shape))
         return tensordict
 
-    def _held(self, greedy: torch.Tensor) -> torch.Tensor:
-        """The action of an env mid-repeat, given the greedy actions ``[N]``."""
-        return self.repeat
+    def propose(self, greedy: torch.Tensor) -> torch.Tensor:
+        draws = getattr(self, "_draws", None)
+        if draws is None:
+            raise RuntimeError(f"{type(self).__name__}.propose before any step")
+        held, repeat = draws
+        flat = greedy.reshape(-1)
+        return torch.where(held, self._held(flat, repeat), flat).reshape(greedy.shape)
+
+    def _held(self, greedy: torch.Tensor, repeat: torch.Tensor | None = None) -> torch.Tensor:
+        """The action of an env mid-repeat, given the greedy actions ``[N]`` (and the repeats:
+        default the current ones)."""
+        return self.repeat if repeat is None else repeat
 
 
 class EzSpeed(EzGreedy):
@@ -118,8 +142,9 @@ class EzSpeed(EzGreedy):
 
     choices = len(SPEED_CHANGES)
 
-    def _held(self, greedy: torch.Tensor) -> torch.Tensor:
-        return self.repeat * len(CURVATURE_CHANGES) + greedy % len(CURVATURE_CHANGES)
+    def _held(self, greedy: torch.Tensor, repeat: torch.Tensor | None = None) -> torch.Tensor:
+        repeat = self.repeat if repeat is None else repeat
+        return repeat * len(CURVATURE_CHANGES) + greedy % len(CURVATURE_CHANGES)
 
 
 class Boltzmann(AlwaysExploring):
@@ -132,6 +157,11 @@ class Boltzmann(AlwaysExploring):
         drawn = torch.multinomial(torch.softmax(logits, -1), 1).reshape(action.shape)
         tensordict.set(self.action_key, drawn.to(action.dtype))
         return tensordict
+
+    def propose(self, greedy: torch.Tensor) -> torch.Tensor:
+        # Its draws come from the values it was given (a risk critic's: masked), not a greedy action.
+        raise ValueError("agent.exploration=boltzmann draws from the masked values: it has no "
+                         "proposal before the mask (network.task_action=proposed needs another exploration)")
 
 
 def make_exploration(eps_start: float, eps_end: float, decay_frames: int, kind: str = "epsilon",

@@ -49,6 +49,7 @@ from memrl.envs.vehicles import N_ACTIONS
 from memrl.evaluation.periodic import PeriodicEvaluation
 from memrl.modes import mode_of
 from memrl.modules.qnet import network_for_task
+from memrl.modules.risk import TASK_ACTION_KEY, proposes, with_task_action
 from memrl.progress import drawn, progress_bar
 from memrl.stop import raise_pending, stop_requested
 
@@ -120,6 +121,10 @@ class Trainer:
         self.collector = Collector(cfg.env, self.num_envs, self.device, int(cfg.seed), engine)
         network = network_for_task(cfg.network, cfg.env, float(cfg.agent.gamma))  # e.g. a support's bounds
         self.learner = Learner(cfg.agent, self.device, seed=int(cfg.seed), network=network)
+        self.proposes = proposes(self.learner.qnet)
+        """The task head learns from its proposals: every stored transition has ``task_action``."""
+        if self.proposes and demos is not None:
+            self.demos = with_task_action(demos)
         self.rounds = RoundRunner(self.learner, bool(cfg.agent.overlap),
                                   int(cfg.agent.threads))
         self.schedule = UpdateSchedule(int(cfg.agent.train_every), max(int(cfg.agent.warmup_frames),
@@ -279,15 +284,26 @@ class Trainer:
         teacher = self.teacher
         if teacher is not None and teacher.warming(frames):
             teacher.act_warm(td, self.stage.explore)
-            return
-        if frames < self.schedule.warmup_frames:
+        elif frames < self.schedule.warmup_frames:
             td["action"] = torch.randint(N_ACTIONS, td.shape, device=td.device)
+        else:
+            assert self.acting is not None and self.stage.explore is not None
+            self.acting(td)
+            if self.proposes:  # before a roll-in: its guided steps are the teacher's, as executed
+                td[TASK_ACTION_KEY] = self._proposals(td)
+            self.stage.explore.step(self.num_envs)
+            if teacher is not None:
+                teacher.roll_in(td, self.collector.length)
             return
-        assert self.acting is not None and self.stage.explore is not None
-        self.acting(td)
-        self.stage.explore.step(self.num_envs)
-        if teacher is not None:
-            teacher.roll_in(td, self.collector.length)
+        if self.proposes:  # random and warm-start steps: what was executed was proposed
+            td[TASK_ACTION_KEY] = td["action"].clone()
+
+    def _proposals(self, td: TensorDictBase) -> torch.Tensor:
+        """The task head's proposals: the exploration's draws of this step applied to the task
+        head's own greedy action (the acting network's ``base``, before the critic's mask)."""
+        net = self.rounds.acting_net.module[0].module.net  # QValueActor -> Decision -> the risk network
+        greedy = net.base(td["pixels"]).argmax(-1)
+        return self.stage.explore.propose(greedy.reshape(td["action"].shape))
 
     def _episodes_done(self, ends: list[EpisodeEnd]) -> None:
         """Rows, self-play snapshots and periodic evaluations of finished episodes."""

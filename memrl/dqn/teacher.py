@@ -33,6 +33,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from memrl.data.transitions import TASK_ACTION_KEY
 from memrl.dqn.stage1 import drive_check
 from memrl.evaluation.policies import RollInActor
 from memrl.modules.qnet import decision_values
@@ -127,6 +128,8 @@ class Teacher:
             action = td["action"]
             guide = self.greedy(td["pixels"]).reshape(action.shape)
             td["action"] = torch.where(guided.reshape(action.shape), guide, action)
+            if TASK_ACTION_KEY in td.keys():  # the teacher's steps: what it executed it proposed
+                td[TASK_ACTION_KEY] = torch.where(guided.reshape(action.shape), guide, td[TASK_ACTION_KEY])
 
     # ------------------------------------------------------------------ checks
     def after_steps(self, student: nn.Module, frames: int) -> bool:

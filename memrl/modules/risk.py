@@ -15,6 +15,9 @@ task action among those with ``Q_risk <= threshold``, else the least-risk action
 ``y = c + (1 - c) gamma_risk^m Q_risk_target(s', a')``, ``c = 1`` on a crash (the transition
 terminated; a time limit bootstraps), ``a'`` the policy's next action (``bootstrap=policy``:
 the safe choice of the online networks) or the safest one (``safest``: the least target risk).
+The task head learns from the executed action (``task_action=executed``) or from the one it
+proposed before the critic's mask (``proposed``: Recovery RL's task policy, which sees the
+mask as part of the environment); the critic always learns from the executed one.
 """
 
 from __future__ import annotations
@@ -27,11 +30,13 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from memrl.data.transitions import TASK_ACTION_KEY
 from memrl.fields import spec
 from memrl.modules.network_config import NetworkConfig, check_network
 from memrl.modules.qnet import TABLE1, QNetwork, head_td_term, hidden_layer, network_for_task
 
 BOOTSTRAPS = ("policy", "safest")
+TASK_ACTIONS = ("executed", "proposed")
 
 
 @dataclass
@@ -63,6 +68,11 @@ class RiskConfig(NetworkConfig):
     base's conv features; ``channels`` and ``layernorm_convs`` are then the base's): its
     cross-entropy also trains the convs the task head reads, an auxiliary crash-prediction task.
     With ``threshold=1`` no action is ever masked: the auxiliary task alone."""
+    task_action: str = spec("executed", choices=TASK_ACTIONS)
+    """The action the task head's TD term learns from: ``executed`` (the masked one) or
+    ``proposed`` (its own choice before the mask: its greedy action, or the exploration's draw
+    applied to it; stored per transition as ``task_action``). The critic learns from the
+    executed action either way; the agent acts the same either way."""
 
     @staticmethod
     def check(node: Any, prefix: str = "network.") -> None:
@@ -79,7 +89,7 @@ class RiskQNetwork(nn.Module):
                  channels: int = 16, hidden: int = 256, layernorm: bool = False,
                  layernorm_convs: bool = False, pool_first: bool = True, gamma: float = 0.97,
                  threshold: float = 0.1, weight: float = 1.0, bootstrap: str = "policy",
-                 prior: float = 0.01, shared_trunk: bool = False) -> None:
+                 prior: float = 0.01, shared_trunk: bool = False, task_action: str = "executed") -> None:
         super().__init__()
         if not isinstance(base, nn.Module):
             raise TypeError(f"RiskQNetwork: base must be a network, got {type(base).__name__}")
@@ -96,6 +106,8 @@ class RiskQNetwork(nn.Module):
                                    layernorm=layernorm, layernorm_convs=layernorm_convs,
                                    pool_first=pool_first)
         self.frames, self.threshold = int(frames), float(threshold)
+        self.proposes = task_action == "proposed"
+        """The task head learns from its proposals (the acting loop stores them, see RiskConfig)."""
         self.gamma_risk = float(gamma)
         """The critic's discount (its TD term's; the evaluation's risk calibration reads it)."""
         with torch.no_grad():  # the output layer's bias at logit(prior): see RiskConfig.prior
@@ -145,7 +157,8 @@ class RiskQNetwork(nn.Module):
         """The base head's own TD term with the critic's cross-entropy beside it."""
         keys = {**dataclasses.asdict(RiskConfig()), **network}  # a stored node may omit defaults
         return RiskTerm(base=head_td_term(agent, network["base"]), gamma=float(keys["gamma"]),
-                        weight=float(keys["weight"]), bootstrap=str(keys["bootstrap"]))
+                        weight=float(keys["weight"]), bootstrap=str(keys["bootstrap"]),
+                        task_action=str(keys["task_action"]))
 
 
 def safe_choice(q: torch.Tensor, risk: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -176,12 +189,13 @@ class RiskTerm:
     gamma: float = 0.97
     weight: float = 1.0
     bootstrap: str = "policy"
+    task_action: str = "executed"
     name: str = "td"
 
     def __call__(self, batch: TensorDictBase, q: Any) -> torch.Tensor:
         net: RiskQNetwork = q.qnet
-        view = q.view(net.base)
-        task = self.base(batch, view)
+        view = q.view(net.base, task_batch(batch) if self.task_action == "proposed" else batch)
+        task = self.base(view.batch, view)
         q.batch_q, q.td_error = view.batch_q, view.td_error  # for the margin term and the priorities
         a = batch.get("action").reshape(-1, 1).long()
         logits = net.risk_logits(batch.get("pixels")).gather(-1, a).squeeze(-1)
@@ -202,3 +216,29 @@ class RiskTerm:
         a_next = net.decide(nxt).argmax(-1, keepdim=True)  # the online networks' safe choice
         return target.gather(-1, a_next).squeeze(-1)
 
+
+
+def task_batch(batch: TensorDictBase) -> TensorDictBase:
+    """``batch`` with ``action`` = its ``task_action`` (a shallow copy; ``batch`` is unchanged)."""
+    if TASK_ACTION_KEY not in batch.keys():
+        raise KeyError(f"network.task_action=proposed: the batch has no {TASK_ACTION_KEY!r} (transitions "
+                       "stored by a run that did not store the task head's proposals)")
+    return batch.clone(recurse=False).set("action", batch.get(TASK_ACTION_KEY))
+
+
+def proposes(network: Any) -> bool:
+    """The ``network`` node (or built network) is a risk critic's whose task head learns from its
+    proposals: the run stores ``task_action`` with every transition, demos included."""
+    if isinstance(network, nn.Module):
+        return bool(getattr(network, "proposes", False))
+    try:
+        target, value = network.get("_target_"), network.get("task_action", "executed")
+    except AttributeError:
+        return False
+    return target == f"{RiskQNetwork.__module__}.{RiskQNetwork.__qualname__}" and value == "proposed"
+
+
+def with_task_action(data: TensorDictBase) -> TensorDictBase:
+    """``data`` (prior knowledge, a teacher's steps) with ``task_action`` = ``action``: what was
+    executed is what was proposed."""
+    return data.clone(recurse=False).set(TASK_ACTION_KEY, data.get("action").clone())
