@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
+from memrl.modules.risk import TASK_ACTION_KEY
+
 TRANSITION_KEYS: tuple = (
     "pixels", "action", "is_demo",
     ("next", "pixels"), ("next", "reward"), ("next", "done"), ("next", "terminated"),
@@ -13,9 +15,6 @@ TRANSITION_KEYS: tuple = (
 """Keys a stored transition has: stacked uint8 pixels ``[4, 84, 84]`` before and after, the
 action index, reward ``[1]``, done flags ``[1]`` and the ``is_demo`` flag."""
 
-TASK_ACTION_KEY = "task_action"
-"""An optional key: the action a crash-risk critic's task head proposed before the mask (runs
-with ``network.task_action=proposed`` store it with every transition; :mod:`memrl.modules.risk`)."""
 
 
 def to_transitions(td: TensorDictBase, is_demo: bool = False) -> TensorDictBase:

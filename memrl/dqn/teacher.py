@@ -33,7 +33,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from memrl.data.transitions import TASK_ACTION_KEY
+from memrl.modules.risk import TASK_ACTION_KEY
 from memrl.dqn.stage1 import drive_check
 from memrl.evaluation.policies import RollInActor
 from memrl.modules.qnet import decision_values

@@ -30,13 +30,15 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from memrl.data.transitions import TASK_ACTION_KEY
 from memrl.fields import spec
 from memrl.modules.network_config import NetworkConfig, check_network
 from memrl.modules.qnet import TABLE1, QNetwork, head_td_term, hidden_layer, network_for_task
 
 BOOTSTRAPS = ("policy", "safest")
 TASK_ACTIONS = ("executed", "proposed")
+TASK_ACTION_KEY = "task_action"
+"""An optional transition key: the action the task head proposed before the mask (runs with
+``network.task_action=proposed`` store it with every transition)."""
 
 
 @dataclass
