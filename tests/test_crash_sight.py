@@ -79,6 +79,24 @@ def test_risk_of_the_action_taken_is_binned_when_the_network_outputs_one():
     assert rows["3-5"]["q_risk"] == pytest.approx(0.15) and rows["survivors"]["q_risk"] == pytest.approx(0.05)
 
 
+def test_the_masks_share_counts_steps_whose_action_is_not_the_greedy_one_by_hand():
+    eps = hand_episodes()
+    eps[0].risk, eps[2].risk = np.zeros((4, 9)), np.zeros((6, 9))  # per action; eps[1]: no risk
+    eps[0].q[0, 0] = eps[0].q[3, 2] = 20.0  # its steps 4 and 1 before the crash: argmax is not the action
+    eps[2].q[1, 8] = 99.0  # the survivor's step 2 (of its 4 kept)
+    rows = {r["steps"]: r for r in cs.calibration(eps, GAMMA, duration=6)}
+    # 1 before: eps[0]'s last step (masked) and eps[1]'s (no risk: not counted)
+    assert (rows["1"]["masked"], rows["2"]["masked"], rows["3-5"]["masked"]) == (1.0, 0.0, 0.5)
+    assert rows["survivors"]["masked"] == 0.25 and rows["6-10"]["masked"] is None
+    assert (rows["1"]["q"], rows["3-5"]["q"]) == (3.0, 9.0)  # Q of the action taken, as before
+    for ep in eps:
+        ep.risk = np.full(len(ep.actions), 0.1)  # per state: a risk, no mask
+    assert all("masked" not in r and r["q_risk"] is not None
+               for r in cs.calibration(eps, GAMMA, duration=6) if r["n"])
+    sight = cs.summarize(hand_episodes()[:1], GAMMA, 6)
+    assert "masked" not in sight["lanes"]["non_goal"]["calibration"][0]
+
+
 def test_risk_calibration_against_the_crashes_that_followed_by_hand():
     eps = hand_episodes()
     eps[0].risk = np.array([0.01, 0.03, 0.3, 0.9])  # per state
@@ -225,6 +243,7 @@ def test_a_risk_output_is_recorded_and_reported():
 
     text = "\n".join(sight_lines([("B", [Result()])]))  # type: ignore[list-item]
     assert "**q_risk, by steps before a crash.**" in text
+    assert "**The mask's share, by steps before a crash.**" in text  # a risk per action
     assert "**The crash-risk head's calibration.**" not in text  # no gamma_risk: no calibration
     Result.crash_sight = cs.summarize(res.traces, 0.9, 20, gamma_risk=0.8)
     text = "\n".join(sight_lines([("B", [Result()])]))  # type: ignore[list-item]

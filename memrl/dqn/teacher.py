@@ -33,10 +33,10 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from memrl.modules.risk import TASK_ACTION_KEY
 from memrl.dqn.stage1 import drive_check
 from memrl.evaluation.policies import RollInActor
 from memrl.modules.qnet import decision_values
+from memrl.modules.risk import TASK_ACTION_KEY
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,9 @@ few numbers that ``eval.json`` keeps under ``crash_sight`` (:func:`summarize`):
   the time limit cuts it), over the steps 1, 2, 3-5, 6-10, 11-20 and 21-40 before a crash
   (1: the step whose action ended in the crash) and over the survivors' steps far from the
   time limit (:func:`survivor_steps`: steps 1-200 of 300); a network that declares a ``risk``
-  output (a crash-risk head) also gets its mean risk of the action taken per group, and its
+  output (a crash-risk head) also gets its mean risk of the action taken per group (with a
+  risk per action, also the share of steps whose action is not the greedy task action: where
+  the critic's mask changed the choice), and its
   **risk calibration** (:func:`risk_calibration`: predicted risk, by bin, against the crashes
   that followed);
 - **action gaps**: percentiles 10 / 50 / 90 over the test states of best - second Q, the speed
@@ -131,20 +133,27 @@ def percentiles(x: np.ndarray) -> list[float] | None:
 
 
 def _mean(x: Sequence[float] | np.ndarray) -> float | None:
+    """The mean over the values that are not NaN (a trace without the column); None for none."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x[~np.isnan(x)]
     return round(float(np.mean(x)), 4) if len(x) else None
 
 
 def calibration(traces: Sequence[EpisodeTrace], gamma: float, duration: int) -> list[dict[str, Any]]:
     """Per group of steps (:data:`BINS`, then ``survivors``): ``steps`` (its name), ``n`` (steps
     in it), ``q`` (mean Q of the action taken), ``g`` (mean discounted return that followed),
-    and ``q_risk`` (mean risk of the action taken) when the traces carry a risk."""
+    and ``q_risk`` (mean risk of the action taken) when the traces carry a risk; ``masked`` (the
+    share of steps whose action taken is not argmax Q: a risk critic's mask chose another) when
+    they carry a risk per action."""
     groups: dict[str, list[np.ndarray]] = {bin_name(*b): [] for b in BINS}
     groups["survivors"] = []
     keep = survivor_steps(duration)
     for tr in traces:
         q, g = taken(tr.q, tr.actions), discounted_returns(tr.rewards, gamma)
         risk = taken(tr.risk, tr.actions) if tr.risk is not None else np.full(len(q), np.nan)
-        steps = np.stack([q, g, risk], axis=1)  # [T, 3]
+        masked = (np.asarray(tr.actions) != np.asarray(tr.q).argmax(-1)).astype(np.float64) \
+            if _per_action(tr) else np.full(len(q), np.nan)
+        steps = np.stack([q, g, risk, masked], axis=1)  # [T, 4]
         t = np.arange(len(q))
         if tr.crashed:
             before = len(q) - t
@@ -153,14 +162,22 @@ def calibration(traces: Sequence[EpisodeTrace], gamma: float, duration: int) -> 
         else:
             groups["survivors"].append(steps[t < keep])
     with_risk = any(tr.risk is not None for tr in traces)
+    with_mask = any(_per_action(tr) for tr in traces)
     rows = []
     for name, parts in groups.items():
-        arr = np.concatenate(parts) if parts else np.zeros((0, 3))
+        arr = np.concatenate(parts) if parts else np.zeros((0, 4))
         row: dict[str, Any] = {"steps": name, "n": len(arr), "q": _mean(arr[:, 0]), "g": _mean(arr[:, 1])}
         if with_risk:
             row["q_risk"] = _mean(arr[:, 2])
+        if with_mask:
+            row["masked"] = _mean(arr[:, 3])
         rows.append(row)
     return rows
+
+
+def _per_action(tr: EpisodeTrace) -> bool:
+    """The trace carries a risk per action (a critic that can mask actions)."""
+    return tr.risk is not None and np.asarray(tr.risk).ndim == 2
 
 
 def risk_calibration(traces: Sequence[EpisodeTrace], gamma_risk: float,
@@ -247,7 +264,7 @@ def pool(blocks: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     for k, row in enumerate(blocks[0]["calibration"]):
         rows = [b["calibration"][k] for b in blocks]
         out = {"steps": row["steps"], "n": sum(r["n"] for r in rows)}
-        for key in ("q", "g", "q_risk"):
+        for key in ("q", "g", "q_risk", "masked"):
             if any(key in r for r in rows):
                 out[key] = _weighted([(r["n"], r.get(key)) for r in rows])
         cal.append(out)

@@ -119,6 +119,15 @@ def sight_lines(rows: Sequence[tuple[str, Sequence[EvalResult]]]) -> list[str]:
         for label, lane, block, gamma in pooled:
             lines.append(f"| {label_of(label, gamma)} | {LANE_NAMES.get(lane, lane)} | "
                          + " | ".join(_cell(row, "q_risk") for row in block["calibration"]) + " |")
+    if any("masked" in row for *_, block, _ in pooled for row in block["calibration"]):
+        lines += ["", "**The mask's share, by steps before a crash.** The share of those steps whose action "
+                  "taken is not the task head's greedy action (argmax Q): where the crash-risk critic's "
+                  f"mask chose another; {DASH}: no such steps.", "",
+                  "| row | starts | " + " | ".join(heads) + f" | survivors (steps 1\u2013{kept}) |",
+                  "|---|---|" + "---|" * (len(heads) + 1)]
+        for label, lane, block, gamma in pooled:
+            lines.append(f"| {label_of(label, gamma)} | {LANE_NAMES.get(lane, lane)} | "
+                         + " | ".join(_cell(row, "masked") for row in block["calibration"]) + " |")
     lines += _risk_lines(pooled, label_of)
     lines += [
         "", "**The action gap beside the fit's error.** Percentiles 10 / 50 / 90 over every test state: "
